@@ -1,0 +1,58 @@
+#!/usr/bin/env python3
+"""One entry point for a fresh machine: set up a virtual environment, then run a job.
+
+    python3 dev.py demo     # set up, then run the default target-lock experiment on the twin
+    python3 dev.py test     # set up, then run the whole test suite
+
+Needs only python3 >= 3.11 and access to the package registry. The environment lives in
+``.venv`` and is reinstalled only when ``pyproject.toml`` changes.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+STAMP = VENV / ".targetlock-install-stamp"
+
+
+def _python() -> Path:
+    return VENV / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+
+
+def setup() -> Path:
+    if sys.version_info < (3, 11):
+        sys.exit(f"targetlock needs Python >= 3.11, this is {sys.version.split()[0]}")
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if not _python().exists():
+        print(f"[dev] creating {VENV}", flush=True)
+        venv.EnvBuilder(with_pip=True).create(VENV)
+    if not STAMP.exists() or STAMP.read_text() != want:
+        print("[dev] installing targetlock and its pinned dependencies", flush=True)
+        subprocess.run([str(_python()), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
+        subprocess.run([str(_python()), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
+        STAMP.write_text(want)
+    return _python()
+
+
+def main(argv: list[str]) -> int:
+    jobs = {
+        "demo": ["-m", "targetlock", "run"],
+        "test": ["-m", "pytest"],
+    }
+    if not argv or argv[0] not in jobs:
+        print(__doc__)
+        return 2
+    py = setup()
+    cmd = [str(py), *jobs[argv[0]], *argv[1:]]
+    print("[dev] " + " ".join(cmd[1:]), flush=True)
+    return subprocess.run(cmd, cwd=ROOT).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
