@@ -93,13 +93,24 @@ def planar_arc_pose(phi_x: float, length: float) -> np.ndarray:
                      [0.0, 0.0, 0.0, 1.0]])
 
 
-def bending_angles_from_poses(base: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """Two bending angles (rad) from base and tip rotations, as motion capture measures them.
+def bending_angles_from_poses(base: np.ndarray, tip: np.ndarray, length: float = 0.12, n_elements: int = 30) -> np.ndarray:
+    """Two bending angles (rad) from base and tip orientations, as motion capture measures them.
 
-    ``base`` and ``tip`` are 3x3 (or 4x4) orientations in any common world frame; the angles are
-    those of the chained model, recovered from the tip's optical axis expressed in the base frame
-    (exact for the chain's pure bends, a close approximation for combined bends, report §3.1).
+    ``base`` and ``tip`` are 3x3 (or 4x4) orientations of the two rigid bodies in any common world
+    frame (report §3.1). The angles are those for which the chained model's optical axis points where
+    the measured one points: a first guess from the axis' two projections, refined by Gauss-Newton.
     """
-    r = np.asarray(base)[:3, :3].T @ np.asarray(tip)[:3, :3]
+    r = np.asarray(base, dtype=float)[:3, :3].T @ np.asarray(tip, dtype=float)[:3, :3]
     z = r[:, 2]
-    return np.array([np.arctan2(z[0], z[2]), np.arctan2(z[1], z[2])])
+    phi = np.array([np.arctan2(z[0], z[2]), np.arctan2(z[1], z[2])])
+    for _ in range(20):
+        f = tip_pose(phi[0], phi[1], length, n_elements)[:3, 2] - z
+        if np.abs(f).max() < 1e-13:
+            break
+        jac = np.empty((3, 2))
+        for k in range(2):
+            d = np.zeros(2)
+            d[k] = 1e-7
+            jac[:, k] = (tip_pose(phi[0] + d[0], phi[1] + d[1], length, n_elements)[:3, 2] - z - f) / 1e-7
+        phi = phi - np.linalg.lstsq(jac, f, rcond=None)[0]
+    return phi

@@ -1,0 +1,66 @@
+"""Benchmarks (``targetlock bench NAME``): performance goals are measured here, not in timed tests."""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from .model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
+from .model.twin import TwinConfig
+
+__all__ = ["bench_model"]
+
+
+def _randomised(base: EndoscopeParams, rng: np.random.Generator, n: int) -> list[EndoscopeParams]:
+    """Endoscopes with parameters spread +-30 % (slack -0.5..1.5 mm) around ``base``."""
+    out = []
+    for _ in range(n):
+        f = lambda: float(rng.uniform(0.7, 1.3))  # noqa: E731
+        out.append(dataclasses.replace(
+            base, cable_stiffness=base.cable_stiffness * f(), tip_stiffness=base.tip_stiffness * f(),
+            mu_n=base.mu_n * f(), mu_f=base.mu_f * f(), friction_offset=base.friction_offset * f(),
+            cable_slack=float(rng.uniform(-0.0005, 0.0015))))
+    return out
+
+
+def bench_model(seconds: float = 200.0, batch_size: int = 1000, batch_seconds_sim: float = 20.0, seed: int = 0) -> dict:
+    """Real-time factor of one endoscope at the internal step, and a randomised batch on one core."""
+    twin = TwinConfig()
+    dt = twin.model_dt
+    p1 = pack_params(twin.endoscope, twin.drive)
+
+    def sweep(t: np.ndarray) -> np.ndarray:
+        sp = np.zeros((t.size, 1, 2))
+        sp[:, 0, 0] = math.radians(110) * np.sin(2 * np.pi * t / 20.0) * np.minimum(t / 20.0, 1.0)
+        sp[:, 0, 1] = math.radians(60) * np.sin(2 * np.pi * t / 13.0)
+        return sp
+
+    simulate(initial_state(1), p1, sweep(np.arange(0, 1.0, dt)), dt)  # compile / load cache
+    t = np.arange(0.0, seconds, dt)
+    sp = sweep(t)
+    t0 = time.perf_counter()
+    simulate(initial_state(1), p1, sp, dt)
+    wall_single = time.perf_counter() - t0
+
+    rng = np.random.default_rng(seed)
+    pb = pack_params(_randomised(twin.endoscope, rng, batch_size), twin.drive)
+    record_dt = 0.01
+    substeps = int(round(record_dt / dt))
+    tb = np.arange(0.0, batch_seconds_sim, record_dt)
+    spb = np.repeat(sweep(tb), batch_size, axis=1) * rng.uniform(0.5, 1.0, size=(1, batch_size, 1))
+    t0 = time.perf_counter()
+    out = simulate(initial_state(batch_size), pb, spb, dt, substeps)
+    wall_batch = time.perf_counter() - t0
+    return {
+        "realtime_factor": seconds / wall_single,
+        "single_sim_seconds": seconds,
+        "single_wall_seconds": wall_single,
+        "model_dt": dt,
+        "batch_size": batch_size,
+        "batch_sim_seconds": batch_seconds_sim,
+        "batch_seconds": wall_batch,
+        "batch_finite": bool(np.all(np.isfinite(out))),
+        "threads": 1,
+    }

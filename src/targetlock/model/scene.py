@@ -1,0 +1,143 @@
+"""Programmable target motion in the world (report §5.3, Fig. 5.2).
+
+Paths are described in the **start camera frame**: offsets (m) from the *anchor*, the point
+``distance`` in front of the camera at the start of the run, along the start camera's image axes
+(x right, y down, z away). So a path means the same thing wherever the tip starts, and the target
+is centred at t = 0 unless the path says otherwise (the step).
+
+* ``linear``  — the report's straight path: ``linear_length`` (12 cm) out and back at
+  ``linear_frequency`` (0.1 Hz), with ``stop_duration`` (1 s) stops at both ends; smooth
+  (cosine) speed profile as a robot arm moves.
+* ``ellipse`` — ``ellipse_size`` (13 cm left-right x 12 cm top-bottom) at ``ellipse_frequency``
+  (0.05 Hz), with two stops per revolution.
+* ``step``    — a static target that appears at ``step_offset_px`` from the image centre
+  (report §5.2: -180 px, a quarter of the image width).
+* ``static``  — the anchor itself.
+* ``waypoints`` — timed waypoints from a CSV file with header ``t,x,y,z`` (s, m, start camera
+  frame, offsets from the anchor), linearly interpolated and held after the last one.
+
+The target is a plane facing the start camera; its pose's origin is the selected target point.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError, param
+from .camera import CameraParams, unproject
+
+__all__ = ["SceneParams", "Scene", "PATHS"]
+
+PATHS = ("linear", "ellipse", "step", "static", "waypoints")
+
+
+@dataclass(frozen=True)
+class SceneParams:
+    """Where the target is and how it moves."""
+    path: str = param("linear", choices=PATHS, doc="target path")
+    waypoints_file: str = param("", doc="CSV file (t,x,y,z) for path = 'waypoints'")
+    distance: float = param(0.12, unit="m", lo=0.005, hi=2.0, doc="target distance in front of the camera at the start (report: 12 cm)")
+    start_tip_deg: tuple[float, float] = param((-10.0, 0.0), unit="deg", lo=-150.0, hi=150.0,
+                                               doc="tip bending (x, y) at the start, where the target is selected")
+    start_delay: float = param(1.0, unit="s", lo=0.0, hi=3600.0, doc="the target rests this long before it moves")
+    linear_length: float = param(0.12, unit="m", lo=0.0, hi=2.0, doc="straight path length (report: 12 cm)")
+    linear_frequency: float = param(0.1, unit="Hz", lo=0.001, hi=10.0, doc="straight path out-and-back rate (report: 0.1 Hz)")
+    linear_direction_deg: float = param(180.0, unit="deg", lo=-360.0, hi=360.0,
+                                        doc="direction in the start image plane (0: image +x, 90: image +y)")
+    stop_duration: float = param(1.0, unit="s", lo=0.0, hi=60.0, doc="stop at each end of the straight path / twice per ellipse")
+    ellipse_size: tuple[float, float] = param((0.13, 0.12), unit="m", lo=0.0, hi=2.0,
+                                              doc="ellipse extent left-right, top-bottom (report: 13 x 12 cm)")
+    ellipse_frequency: float = param(0.05, unit="Hz", lo=0.001, hi=10.0, doc="revolutions per second (report: 0.05 Hz)")
+    step_offset_px: tuple[float, float] = param((-180.0, 0.0), unit="px", lo=-4096.0, hi=4096.0,
+                                                doc="where the step target appears, from the image centre")
+
+    def check(self, prefix: str = "") -> None:
+        if self.path == "waypoints" and not self.waypoints_file:
+            raise ConfigError(f"{prefix}waypoints_file must name a CSV file when {prefix}path = 'waypoints'")
+        period = 1.0 / self.linear_frequency
+        if self.path == "linear" and 2 * self.stop_duration >= period:
+            raise ConfigError(f"{prefix}stop_duration = {self.stop_duration} s leaves no time to move in a "
+                              f"{period:g} s period; allowed: [0, {period / 2:g}) s")
+
+
+def _smooth(u: np.ndarray) -> np.ndarray:
+    """Cosine speed profile on [0, 1] (zero speed at both ends)."""
+    return 0.5 - 0.5 * np.cos(np.pi * np.clip(u, 0.0, 1.0))
+
+
+def _load_waypoints(path: str) -> tuple[np.ndarray, np.ndarray]:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"scene.waypoints_file = {path!r}: no such file")
+    with p.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    try:
+        t = np.array([float(r["t"]) for r in rows])
+        xyz = np.array([[float(r["x"]), float(r["y"]), float(r["z"])] for r in rows])
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ConfigError(f"scene.waypoints_file = {path!r}: needs numeric columns t,x,y,z ({exc})") from None
+    if t.size == 0 or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(xyz)):
+        raise ConfigError(f"scene.waypoints_file = {path!r}: needs at least one row, strictly increasing t, finite values")
+    return t, xyz
+
+
+class Scene:
+    """Target motion anchored to the camera pose at the start of a run."""
+
+    def __init__(self, params: SceneParams, camera: CameraParams, start_camera_pose: np.ndarray) -> None:
+        self.params = params
+        self.camera = camera
+        self.start_pose = np.array(start_camera_pose, dtype=float)
+        self.rotation = self.start_pose[:3, :3]
+        self.anchor = self.start_pose[:3, 3] + params.distance * self.rotation[:, 2]
+        self._waypoints = _load_waypoints(params.waypoints_file) if params.path == "waypoints" else None
+        if params.path == "step":
+            self._step = unproject(np.array(params.step_offset_px) + [camera.cx, camera.cy], params.distance,
+                                   camera, distort=False) - [0.0, 0.0, params.distance]
+
+    def offset(self, t: float | np.ndarray) -> np.ndarray:
+        """Target offset(s) from the anchor in the start camera frame (m), shape (..., 3)."""
+        p = self.params
+        t = np.asarray(t, dtype=float)
+        tau = np.maximum(t - p.start_delay, 0.0)
+        zeros = np.zeros_like(tau)
+        if p.path == "linear":
+            period = 1.0 / p.linear_frequency
+            move = period / 2.0 - p.stop_duration
+            ph = np.mod(tau, period)
+            s = np.where(ph < move, _smooth(ph / move),
+                         np.where(ph < move + p.stop_duration, 1.0,
+                                  1.0 - _smooth((ph - move - p.stop_duration) / move)))
+            d = math.radians(p.linear_direction_deg)
+            return np.stack([s * p.linear_length * math.cos(d), s * p.linear_length * math.sin(d), zeros], axis=-1)
+        if p.path == "ellipse":
+            period = 1.0 / p.ellipse_frequency
+            half_move = period / 2.0 - p.stop_duration
+            ph = np.mod(tau, period)
+            first = ph < half_move + p.stop_duration
+            frac = np.where(first, 0.5 * _smooth(ph / half_move),
+                            0.5 + 0.5 * _smooth((ph - half_move - p.stop_duration) / half_move))
+            alpha = 2.0 * np.pi * frac
+            a, b = p.ellipse_size[0] / 2.0, p.ellipse_size[1] / 2.0
+            return np.stack([a * (np.cos(alpha) - 1.0), b * np.sin(alpha), zeros], axis=-1)
+        if p.path == "step":
+            return np.broadcast_to(self._step, tau.shape + (3,)).copy()
+        if p.path == "waypoints":
+            wt, wxyz = self._waypoints
+            return np.stack([np.interp(t, wt, wxyz[:, k]) for k in range(3)], axis=-1)
+        return np.stack([zeros, zeros, zeros], axis=-1)
+
+    def target_position(self, t: float | np.ndarray) -> np.ndarray:
+        """Selected target point in the world (base) frame (m), shape (..., 3)."""
+        return self.anchor + self.offset(t) @ self.rotation.T
+
+    def target_pose(self, t: float) -> np.ndarray:
+        """4x4 pose of the target plane: origin at the selected point, facing the start camera."""
+        pose = np.eye(4)
+        pose[:3, :3] = self.rotation
+        pose[:3, 3] = self.target_position(t)
+        return pose
