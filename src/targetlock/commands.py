@@ -1,2 +1,170 @@
-"""Subcommands of the closed loop, vision and hardware (registered into :mod:`targetlock.cli`)."""
+"""Subcommands of the closed loop (run, step-response, compare), registered into :mod:`targetlock.cli`."""
 from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from pathlib import Path
+
+from .cli import _common, command
+from .controllers.base import CONTROLLERS
+from .model.scene import PATHS
+
+PATH_CHOICES = [p for p in PATHS if p != "waypoints"]
+
+
+def _loop_options(p: argparse.ArgumentParser) -> None:
+    _common(p)
+    p.add_argument("--path", metavar="PATH", help=f"target path: {', '.join(PATH_CHOICES)} or a CSV file (t,x,y,z)")
+    p.add_argument("--latency", type=float, metavar="S", help="video latency (s, default 0.4)")
+    p.add_argument("--fps", type=float, help="camera frame rate (default 22)")
+    p.add_argument("--i-gain", type=float, metavar="I", help="integral gain I (tick/(px·s), default 300)")
+    p.add_argument("--p-gain", type=float, metavar="P", help="proportional gain P (tick/px, default 0)")
+    p.add_argument("--hc-width", type=float, metavar="W", help="compensation width w of model 1 (default 0.2)")
+    p.add_argument("--seconds", type=float, help="run length (s, default 40)")
+    p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--noise", type=float, metavar="PX", help="tracker noise (px standard deviation)")
+    p.add_argument("--drop", type=float, metavar="P", help="probability of a dropped frame")
+    p.add_argument("--outliers", type=float, metavar="P", help="probability of an outlier observation")
+    p.add_argument("--realtime", action="store_true", help="run on the wall clock")
+
+
+def _overrides(args: argparse.Namespace) -> dict:
+    """Nested config overrides from the common loop flags."""
+    o: dict = {"twin": {"camera": {}, "scene": {}}, "controller": {}, "loop": {}, "tracker": {}}
+    if getattr(args, "controller", None):
+        o["controller"]["kind"] = args.controller
+    if args.path:
+        if args.path in PATH_CHOICES:
+            o["twin"]["scene"]["path"] = args.path
+        else:
+            o["twin"]["scene"].update(path="waypoints", waypoints_file=str(Path(args.path).resolve()))
+    for flag, section, key in (("latency", "camera", "latency"), ("fps", "camera", "fps")):
+        if getattr(args, flag) is not None:
+            o["twin"][section][key] = getattr(args, flag)
+    for flag, key in (("i_gain", "i_gain"), ("p_gain", "p_gain"), ("hc_width", "hc_width")):
+        if getattr(args, flag, None) is not None:
+            o["controller"][key] = getattr(args, flag)
+    if args.seconds is not None:
+        o["loop"]["seconds"] = args.seconds
+    for flag, key in (("noise", "noise_px"), ("drop", "drop_probability"), ("outliers", "outlier_probability")):
+        if getattr(args, flag) is not None:
+            o["tracker"][key] = getattr(args, flag)
+    if args.seed is not None:
+        o["seed"] = args.seed
+        o["tracker"]["seed"] = args.seed
+    if args.realtime:
+        o["realtime"] = True
+    return o
+
+
+def _print_summary(s: dict) -> None:
+    print(f"target lock: {s['controller']} on the {s['path']} path, latency {s['latency_s']:g} s, {s['fps']:g} fps, "
+          f"preset {s['preset']!r}")
+    print(f"  tracking error after warm-up: rms {s['rms_px']:.1f} px, peak {s['peak_px']:.1f} px, "
+          f"p95 {s['p95_px']:.1f} px, mean {s['mean_px']:.1f} px")
+    if s.get("tip_range_deg"):
+        print(f"  tip worked between {s['tip_range_deg'][0]:.0f} and {s['tip_range_deg'][1]:.0f} deg; "
+              f"frames lost {100 * s['lost_fraction']:.1f} %")
+    print(f"  {s['sim_seconds']:g} s simulated in {s['wall_seconds']:.2f} s ({s['realtime_factor']:.0f}x real time)")
+
+
+# --------------------------------------------------------------------------------------------- run
+def _run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi-hc)")
+    _loop_options(p)
+
+
+@command("run", "closed-loop target lock on the digital twin: the main job")(_run_options)
+def _run(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.runfolder import RunFolder
+    from .experiments.target_lock import RunConfig, run_target_lock
+
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
+    run = RunFolder("run", cfg, args.out)
+    s = run_target_lock(cfg, run, progress=True)
+    _print_summary(s)
+    print(f"  run folder: {run.path}  (plots: {run.file('tracking.png')})")
+    if args.json:
+        print_json_last({k: v for k, v in s.items() if not k.startswith("_")})
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- step response
+def _step_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi)")
+    p.add_argument("--i-values", type=float, nargs="+", metavar="I", default=[100, 200, 300, 400, 500],
+                   help="I values to compare (tick/(px·s))")
+    _loop_options(p)
+
+
+@command("step-response", "step responses for several I values (report §5.2, Fig. 6.1)")(_step_options)
+def _step(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.runfolder import RunFolder
+    from .experiments.step_response import plot_step_responses, run_step_responses
+    from .experiments.target_lock import RunConfig
+    from .model.twin import merge
+
+    base = {"twin": {"scene": {"path": "step", "start_tip_deg": [0.0, 0.0], "start_delay": 0.0}},
+            "controller": {"kind": "pi"}, "loop": {"seconds": 5.0, "metrics_after": 0.0}}
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=merge(base, _overrides(args)))
+    run = RunFolder("step-response", cfg, args.out)
+    results = run_step_responses(cfg, args.i_values)
+    with run.timeseries(["i_gain", "t", "offset_x_px"]) as ts:
+        for r in results:
+            for t, x in zip(r["_t"], r["_x"]):
+                ts.write([r["i_gain"], t, x])
+    plot_step_responses(results, cfg, run.file("step_response.png"))
+    rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in results]
+    summary = {"step_px": cfg.twin.scene.step_offset_px[0], "responses": rows, "run_folder": str(run.path)}
+    run.write_summary(summary)
+    print(f"step response from {cfg.twin.scene.step_offset_px[0]:g} px, {cfg.controller.kind}, "
+          f"latency {cfg.twin.camera.latency:g} s")
+    print(f"{'I':>6} {'rise (s)':>9} {'overshoot (px)':>15} {'overshoot (%)':>14} {'settling (s)':>13}")
+    for r in rows:
+        print(f"{r['i_gain']:>6g} {r['rise_time_s']:>9.2f} {r['overshoot_px']:>15.1f} {r['overshoot_pct']:>14.1f} "
+              f"{r['settling_time_s']:>13.2f}")
+    print(f"run folder: {run.path}  (plot: {run.file('step_response.png')})")
+    if args.json:
+        print_json_last(summary)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- compare
+def _compare_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=["pi", "pi-hc", "ik"],
+                   help="controllers to compare")
+    p.add_argument("--latencies", type=float, nargs="+", metavar="S", help="latencies to compare (s)")
+    _loop_options(p)
+
+
+@command("compare", "several controllers and/or latencies on the same path: table and overlay plot")(_compare_options)
+def _compare(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.compare import compare, plot_compare
+    from .experiments.runfolder import RunFolder
+    from .experiments.target_lock import RunConfig
+
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
+    run = RunFolder("compare", cfg, args.out)
+    latencies = args.latencies or [cfg.twin.camera.latency]
+    rows = compare(cfg, args.controllers, latencies)
+    plot_compare(rows, cfg, run.file("compare.png"))
+    table = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+    with run.timeseries(["case", "t", "err_x", "err_y", "err"]) as ts:
+        for i, r in enumerate(rows):
+            d = r["_data"]
+            for row in d:
+                ts.write([i, row[0], row[1], row[2], row[3]])
+    summary = {"path": cfg.twin.scene.path, "rows": table, "run_folder": str(run.path)}
+    run.write_summary(summary)
+    print(f"comparison on the {cfg.twin.scene.path} path ({cfg.loop.seconds:g} s, preset {cfg.twin.preset!r})")
+    print(f"{'controller':>10} {'latency (s)':>11} {'rms (px)':>9} {'peak (px)':>10} {'p95 (px)':>9}")
+    for r in table:
+        print(f"{r['controller']:>10} {r['latency_s']:>11g} {r['rms_px']:>9.1f} {r['peak_px']:>10.1f} {r['p95_px']:>9.1f}")
+    print(f"run folder: {run.path}  (plot: {run.file('compare.png')})")
+    if args.json:
+        print_json_last(summary)
+    return 0

@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import ConfigError, param
-from ..model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
+from ..model.endoscope import handle_for_tip, initial_state, pack_params, simulate
 from ..model.twin import TwinConfig
 
-__all__ = ["HysteresisConfig", "HysteresisResult", "run_sweep", "analyse_curve", "handle_for_tip", "plot"]
+__all__ = ["HysteresisConfig", "HysteresisResult", "run_sweep", "analyse_curve", "plot"]
 
 
 @dataclass(frozen=True)
@@ -54,18 +54,6 @@ class HysteresisResult:
     phase: np.ndarray         # (T,) int, index of the sweep cycle (-1 while positioning)
     curves: list[dict]
     total_gain: float
-
-
-def handle_for_tip(e: EndoscopeParams, tip_angle: float) -> float:
-    """Handle angle (rad) that bends a straight axis out to ``tip_angle`` (rad), quasi-statically."""
-    sign = 1.0 if tip_angle >= 0 else -1.0
-    phi = abs(tip_angle)
-    normal = e.mu_n * (phi + e.friction_offset) if e.friction_model == "both-angles" else e.mu_n * phi
-    tension = (e.tip_stiffness * phi + normal) / e.cable_arm
-    stroke = tension / e.cable_stiffness + e.cable_arm * phi + e.cable_slack
-    if e.cable_slack < 0:  # both cables taut near the centre share the load
-        stroke = max(stroke, (e.tip_stiffness * phi + normal) / (2 * e.cable_arm * e.cable_stiffness) + e.cable_arm * phi)
-    return sign * stroke / e.handle_radius
 
 
 def _sweep_profile(cfg: HysteresisConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,7 @@ Everything runs in one numba kernel over a batch of N endoscopes.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -37,7 +38,7 @@ from numba import njit, prange
 from ..config import param
 from .drives import DriveParams, drive_step
 
-__all__ = ["EndoscopeParams", "pack_params", "initial_state", "advance", "simulate", "calibrate_handle_radius",
+__all__ = ["EndoscopeParams", "pack_params", "initial_state", "advance", "simulate", "calibrate_handle_radius", "handle_for_tip", "static_gain",
            "STATE_HANDLE", "STATE_TIP", "STATE_RATE", "FRICTION_MODELS"]
 
 FRICTION_MODELS = ("both-angles", "own-angle")
@@ -215,10 +216,17 @@ def calibrate_handle_radius(e: EndoscopeParams, handle_angle: float = math.radia
     opposing the motion, other axis straight):
         c·K_c·(r_h·theta - c·Phi - s0) = K_tip·Phi + N(Phi)
     """
-    if e.friction_model == "both-angles":
-        normal = e.mu_n * (tip_angle + e.friction_offset)
-    else:
-        normal = e.mu_n * tip_angle
-    tension = (e.tip_stiffness * tip_angle + normal) / e.cable_arm
-    stroke = tension / e.cable_stiffness + e.cable_arm * tip_angle + e.cable_slack
-    return stroke / handle_angle
+    # handle_for_tip gives the cable stroke when the radius is 1 m/rad.
+    return handle_for_tip(dataclasses.replace(e, handle_radius=1.0), tip_angle) / handle_angle
+
+
+def handle_for_tip(e: EndoscopeParams, tip_angle: float) -> float:
+    """Handle angle (rad) that bends a straight axis out to ``tip_angle`` (rad), quasi-statically."""
+    sign = 1.0 if tip_angle >= 0 else -1.0
+    phi = abs(tip_angle)
+    normal = e.mu_n * (phi + e.friction_offset) if e.friction_model == "both-angles" else e.mu_n * phi
+    tension = (e.tip_stiffness * phi + normal) / e.cable_arm
+    stroke = tension / e.cable_stiffness + e.cable_arm * phi + e.cable_slack
+    if e.cable_slack < 0:  # both cables taut near the centre share the load
+        stroke = max(stroke, (e.tip_stiffness * phi + normal) / (2 * e.cable_arm * e.cable_stiffness) + e.cable_arm * phi)
+    return sign * stroke / e.handle_radius

@@ -68,9 +68,15 @@ def tip_pose(phi_x: float, phi_y: float, length: float, n_elements: int) -> np.n
     n_elements: number of (x, y) element pairs in the chain (report: 30).
     """
     pair = _element_pair(phi_x / n_elements, phi_y / n_elements, length / (2.0 * n_elements))
+    # pair ** n by repeated squaring: log2(n) products instead of n.
     out = np.eye(4)
-    for _ in range(n_elements):
-        out = out @ pair
+    k = n_elements
+    while k > 0:
+        if k & 1:
+            out = out @ pair
+        k >>= 1
+        if k:
+            pair = pair @ pair
     return out
 
 

@@ -64,9 +64,9 @@ class SceneParams:
                               f"{period:g} s period; allowed: [0, {period / 2:g}) s")
 
 
-def _smooth(u: np.ndarray) -> np.ndarray:
+def _smooth(u: float) -> float:
     """Cosine speed profile on [0, 1] (zero speed at both ends)."""
-    return 0.5 - 0.5 * np.cos(np.pi * np.clip(u, 0.0, 1.0))
+    return 0.5 - 0.5 * math.cos(math.pi * min(max(u, 0.0), 1.0))
 
 
 def _load_waypoints(path: str) -> tuple[np.ndarray, np.ndarray]:
@@ -101,35 +101,44 @@ class Scene:
 
     def offset(self, t: float | np.ndarray) -> np.ndarray:
         """Target offset(s) from the anchor in the start camera frame (m), shape (..., 3)."""
-        p = self.params
+        if np.ndim(t) == 0:
+            return np.array(self._offset(float(t)))
         t = np.asarray(t, dtype=float)
-        tau = np.maximum(t - p.start_delay, 0.0)
-        zeros = np.zeros_like(tau)
+        return np.array([self._offset(x) for x in t.ravel()]).reshape(t.shape + (3,))
+
+    def _offset(self, t: float) -> tuple[float, float, float]:
+        # Scalar on purpose: the control loop asks for one time per tick, where numpy costs more than math.
+        p = self.params
+        tau = max(t - p.start_delay, 0.0)
         if p.path == "linear":
             period = 1.0 / p.linear_frequency
             move = period / 2.0 - p.stop_duration
-            ph = np.mod(tau, period)
-            s = np.where(ph < move, _smooth(ph / move),
-                         np.where(ph < move + p.stop_duration, 1.0,
-                                  1.0 - _smooth((ph - move - p.stop_duration) / move)))
+            ph = tau % period
+            if ph < move:
+                s = _smooth(ph / move)
+            elif ph < move + p.stop_duration:
+                s = 1.0
+            else:
+                s = 1.0 - _smooth((ph - move - p.stop_duration) / move)
             d = math.radians(p.linear_direction_deg)
-            return np.stack([s * p.linear_length * math.cos(d), s * p.linear_length * math.sin(d), zeros], axis=-1)
+            return (s * p.linear_length * math.cos(d), s * p.linear_length * math.sin(d), 0.0)
         if p.path == "ellipse":
             period = 1.0 / p.ellipse_frequency
             half_move = period / 2.0 - p.stop_duration
-            ph = np.mod(tau, period)
-            first = ph < half_move + p.stop_duration
-            frac = np.where(first, 0.5 * _smooth(ph / half_move),
-                            0.5 + 0.5 * _smooth((ph - half_move - p.stop_duration) / half_move))
-            alpha = 2.0 * np.pi * frac
+            ph = tau % period
+            if ph < half_move + p.stop_duration:
+                frac = 0.5 * _smooth(ph / half_move)
+            else:
+                frac = 0.5 + 0.5 * _smooth((ph - half_move - p.stop_duration) / half_move)
+            alpha = 2.0 * math.pi * frac
             a, b = p.ellipse_size[0] / 2.0, p.ellipse_size[1] / 2.0
-            return np.stack([a * (np.cos(alpha) - 1.0), b * np.sin(alpha), zeros], axis=-1)
+            return (a * (math.cos(alpha) - 1.0), b * math.sin(alpha), 0.0)
         if p.path == "step":
-            return np.broadcast_to(self._step, tau.shape + (3,)).copy()
+            return (float(self._step[0]), float(self._step[1]), float(self._step[2]))
         if p.path == "waypoints":
             wt, wxyz = self._waypoints
-            return np.stack([np.interp(t, wt, wxyz[:, k]) for k in range(3)], axis=-1)
-        return np.stack([zeros, zeros, zeros], axis=-1)
+            return tuple(float(np.interp(t, wt, wxyz[:, k])) for k in range(3))
+        return (0.0, 0.0, 0.0)
 
     def target_position(self, t: float | np.ndarray) -> np.ndarray:
         """Selected target point in the world (base) frame (m), shape (..., 3)."""

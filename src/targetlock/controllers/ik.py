@@ -1,0 +1,97 @@
+"""Inverse-kinematics controller (report §4.3).
+
+On each new observation:
+
+1. the target pixel and the assumed depth give the target in the camera frame (Eq. 3.38 inverted);
+2. the camera pose at capture time comes from the forward kinematics at the motor position
+   *at the frame's capture time* (the motor history is delayed to match the video, as the report
+   delays it by 8 frames; we use the capture timestamp, which needs no frame counting);
+3. the bending angles that put the target on the optical axis are solved directly by
+   Gauss-Newton on the chained kinematics (the report ran an online simulation of the model with a
+   PI loop until it settled; a direct solve reaches the same fixed point in a few iterations);
+4. the handle setpoint is those angles over the tip gain, damped towards the measured motor
+   position with d (Eq. 4.6): S = S* - d·(S* - M).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ..model.camera import CameraParams, unproject
+from ..model.kinematics import tip_pose
+from ..rig.base import Observation
+from .base import Controller, ControllerConfig
+from .pi import MotorHistory
+
+__all__ = ["IKController", "aim_angles"]
+
+
+@njit(cache=True)
+def _aim_residual(target, phi0, phi1, length, n):
+    h = tip_pose(phi0, phi1, length, n)
+    d = target - h[:3, 3]
+    r = h[:3, :3]
+    x = r[0, 0] * d[0] + r[1, 0] * d[1] + r[2, 0] * d[2]
+    y = r[0, 1] * d[0] + r[1, 1] * d[1] + r[2, 1] * d[2]
+    z = r[0, 2] * d[0] + r[1, 2] * d[1] + r[2, 2] * d[2]
+    return np.array([x / z, y / z])
+
+
+@njit(cache=True)
+def aim_angles(target: np.ndarray, phi_start: np.ndarray, length: float, n: int, lower: float, upper: float) -> np.ndarray:
+    """Bending angles (rad) whose optical axis passes through ``target`` (base frame, m)."""
+    phi = phi_start.copy()
+    eps = 1e-6
+    for _ in range(12):
+        r = _aim_residual(target, phi[0], phi[1], length, n)
+        if abs(r[0]) + abs(r[1]) < 1e-10:
+            break
+        j = np.empty((2, 2))
+        for k in range(2):
+            p = phi.copy()
+            p[k] += eps
+            j[:, k] = (_aim_residual(target, p[0], p[1], length, n) - r) / eps
+        det = j[0, 0] * j[1, 1] - j[0, 1] * j[1, 0]
+        if abs(det) < 1e-12:
+            break
+        dphi0 = (j[1, 1] * r[0] - j[0, 1] * r[1]) / det
+        dphi1 = (-j[1, 0] * r[0] + j[0, 0] * r[1]) / det
+        phi[0] = min(max(phi[0] - dphi0, lower), upper)
+        phi[1] = min(max(phi[1] - dphi1, lower), upper)
+    return phi
+
+
+class IKController(Controller):
+    """Target pixel + depth -> 3D target -> bending angles that centre it -> damped handle setpoint."""
+
+    def __init__(self, cfg: ControllerConfig, *, camera: CameraParams, tip_length: float, n_elements: int,
+                 latency: float, **kw) -> None:
+        super().__init__(cfg, **kw)
+        self.camera = camera
+        self.tip_length = float(tip_length)
+        self.n_elements = int(n_elements)
+        self.delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
+        self.history = MotorHistory(self.delay + 1.0, self.control_dt)
+        self.goal = np.zeros(2)
+
+    def _reset(self, motor: np.ndarray, t: float) -> None:
+        self.history.push(t, motor)
+        self.goal = motor.copy()
+
+    def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
+        self.history.push(t, motor)
+        if obs is None:
+            return self.setpoint
+        cfg, cam = self.cfg, self.camera
+        motor_then = self.history.at(t - self.delay) if cfg.motor_delay >= 0 else self.history.at(obs.capture_time)
+        phi_then = cfg.tip_gain * motor_then
+        p_cam = unproject(np.asarray(obs.offset) + [cam.cx, cam.cy], cfg.ik_depth, cam)
+        pose = tip_pose(phi_then[0], phi_then[1], self.tip_length, self.n_elements)
+        p_base = pose[:3, :3] @ p_cam + pose[:3, 3]
+        lim = float(np.max(np.abs(np.concatenate([self.lower, self.upper])))) * cfg.tip_gain
+        phi_goal = aim_angles(p_base, phi_then, self.tip_length, self.n_elements, -lim, lim)
+        self.goal = phi_goal / cfg.tip_gain
+        return self.goal - cfg.ik_damping * (self.goal - motor)
+
+    def signals(self) -> dict[str, float]:
+        return {"goal_x_deg": float(np.degrees(self.goal[0])), "goal_y_deg": float(np.degrees(self.goal[1]))}

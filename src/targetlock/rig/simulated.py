@@ -1,0 +1,193 @@
+"""The digital twin behind the rig interfaces: simulated drives, camera, target and an ideal tracker.
+
+Frames are captured at the camera frame rate on the model's time grid. Each capture computes
+where the target really is in the image (the ideal tracker), optionally corrupted by noise,
+dropped frames and outliers, and puts the observation on the latency line; the loop receives it
+``camera.latency`` seconds after capture. A vision pipeline can replace the ideal tracker through
+``frame_hook`` (see :mod:`targetlock.vision`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..config import param
+from ..model.camera import LatencyLine, project, world_to_camera
+from ..model.endoscope import advance, handle_for_tip, initial_state, pack_params
+from ..model.kinematics import tip_pose
+from ..model.scene import Scene
+from ..model.twin import TwinConfig
+from .base import Drives, Observation, ObservationSource, Rig
+
+__all__ = ["ObservationNoise", "SimulatedRig", "SimDrives"]
+
+
+@dataclass(frozen=True)
+class ObservationNoise:
+    """Imperfections of the ideal tracker."""
+    noise_px: float = param(0.0, unit="px", lo=0.0, hi=500.0, doc="standard deviation of Gaussian pixel noise")
+    drop_probability: float = param(0.0, lo=0.0, hi=1.0, doc="probability that a frame yields no observation")
+    outlier_probability: float = param(0.0, lo=0.0, hi=1.0, doc="probability of a wrong but 'valid' observation")
+    outlier_px: float = param(150.0, unit="px", lo=0.0, hi=2000.0, doc="size of an outlier's error")
+    seed: int = param(0, lo=0, hi=2**63 - 1, doc="random seed of the imperfections")
+
+
+class SimDrives(Drives):
+    """The twin's drives: ticks in, ticks out; no motion before homing; setpoints clamped."""
+
+    def __init__(self, rig: "SimulatedRig") -> None:
+        self._rig = rig
+        self._homed = False
+        p = rig.twin.drive
+        self._lo = np.array([p.min_ticks, p.min_ticks], dtype=np.int64)
+        self._hi = np.array([p.max_ticks, p.max_ticks], dtype=np.int64)
+        self.last_ticks = np.zeros(2, dtype=np.int64)
+
+    @property
+    def homed(self) -> bool:
+        return self._homed
+
+    def home(self) -> None:
+        # The twin's encoders are absolute: homing only declares the reference valid.
+        self._homed = True
+
+    def send_setpoints(self, ticks: np.ndarray) -> None:
+        if not self._homed:
+            raise RuntimeError("drives are not homed: no motion before homing")
+        t = np.clip(np.asarray(ticks, dtype=np.int64), self._lo, self._hi)
+        self.last_ticks = t
+        self._rig.setpoint_rad[:] = t * self.rad_per_tick
+
+    def positions(self) -> np.ndarray:
+        return np.rint(self._rig.state[0, 0:2] / self.rad_per_tick).astype(np.int64)
+
+    @property
+    def limits(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._lo.copy(), self._hi.copy()
+
+    @property
+    def rad_per_tick(self) -> float:
+        return self._rig.twin.drive.rad_per_tick
+
+
+class _LatencySource(ObservationSource):
+    def __init__(self, latency: float) -> None:
+        self.line = LatencyLine(latency)
+
+    def poll(self, now: float) -> list[Observation]:
+        return [item for _, item in self.line.pop_ready(now)]
+
+
+class SimulatedRig(Rig):
+    """The twin: endoscope + drives + camera + moving target, stepping on the model's grid.
+
+    ``frame_hook(rig, t, truth_offset) -> Observation | None`` replaces the ideal tracker (vision).
+    """
+
+    def __init__(self, twin: TwinConfig, noise: ObservationNoise | None = None, *,
+                 frame_hook: Callable[["SimulatedRig", float, np.ndarray], Observation | None] | None = None,
+                 settle_seconds: float = 4.0) -> None:
+        self.twin = twin
+        self.noise = noise or ObservationNoise()
+        self.rng = np.random.default_rng(self.noise.seed)
+        self.params = pack_params(twin.endoscope, twin.drive)
+        self.state = initial_state(1)
+        self.setpoint_rad = np.zeros(2)
+        self.dt = twin.model_dt
+        self.frame_hook = frame_hook
+        self.drives = SimDrives(self)
+        self.observations = _LatencySource(twin.camera.latency)
+        self.frames_captured = 0
+        self.frames_valid = 0
+        self.frame_log: list[tuple[float, bool]] = []
+        self._settle(settle_seconds)
+        self.start_camera_pose = self.camera_pose()
+        self.scene = Scene(twin.scene, twin.camera, self.start_camera_pose)
+        self.steps = 0
+        self.frame_index = 0
+
+    # -------------------------------------------------------------------------------- physics
+    def _settle(self, seconds: float) -> None:
+        """Bend the tip to the scene's start angles before t = 0, as a clinician would have."""
+        e = self.twin.endoscope
+        goal = np.array([handle_for_tip(e, math.radians(a)) for a in self.twin.scene.start_tip_deg])
+        n_ramp = int(round(0.75 * seconds / self.dt))
+        for k in range(0, n_ramp, 10):
+            advance(self.state, self.params, (goal * (k + 10) / n_ramp)[None, :], self.dt, 10)
+        advance(self.state, self.params, goal[None, :], self.dt, int(round(0.25 * seconds / self.dt)))
+        self.state[0, 4:6] = 0.0
+        self.setpoint_rad[:] = self.state[0, 0:2]
+
+    @property
+    def time(self) -> float:
+        return self.steps * self.dt
+
+    def _integrate_to(self, t: float) -> None:
+        n = int(round(t / self.dt)) - self.steps
+        if n > 0:
+            advance(self.state, self.params, self.setpoint_rad[None, :], self.dt, n)
+            self.steps += n
+
+    def camera_pose(self) -> np.ndarray:
+        e = self.twin.endoscope
+        return tip_pose(self.state[0, 2], self.state[0, 3], e.tip_length, e.n_elements)
+
+    def tip_angles(self) -> np.ndarray:
+        return self.state[0, 2:4].copy()
+
+    def handle_angles(self) -> np.ndarray:
+        return self.state[0, 0:2].copy()
+
+    def truth_offset(self, t: float | None = None) -> np.ndarray:
+        """Where the target really is in the image now (px from centre); NaN if not in view."""
+        cam = self.twin.camera
+        t = self.time if t is None else t
+        p = world_to_camera(self.camera_pose(), self.scene.target_position(t))
+        px = project(p, cam)
+        if not (0.0 <= px[0] < cam.width and 0.0 <= px[1] < cam.height):
+            return np.array([np.nan, np.nan])
+        return px - (cam.cx, cam.cy)
+
+    # -------------------------------------------------------------------------------- rig API
+    def advance(self, until: float) -> None:
+        period = 1.0 / self.twin.camera.fps
+        while True:
+            t_frame = self.frame_index * period
+            if t_frame > until + 1e-12:
+                break
+            self._integrate_to(t_frame)
+            self._capture(t_frame)
+            self.frame_index += 1
+        self._integrate_to(until)
+
+    def _capture(self, t: float) -> None:
+        truth = self.truth_offset(t)
+        if self.frame_hook is not None:
+            obs = self.frame_hook(self, t, truth)
+        else:
+            obs = self._ideal_observation(t, truth)
+        self.frames_captured += 1
+        valid = obs is not None and obs.valid
+        self.frames_valid += int(valid)
+        self.frame_log.append((t, valid))
+        if obs is not None:
+            self.observations.line.push(t, obs)
+
+    def _ideal_observation(self, t: float, truth: np.ndarray) -> Observation | None:
+        nz = self.noise
+        rng = self.rng
+        if nz.drop_probability and rng.random() < nz.drop_probability:
+            return None
+        visible = bool(np.all(np.isfinite(truth)))
+        offset = truth.copy()
+        if visible and nz.noise_px:
+            offset = offset + rng.normal(0.0, nz.noise_px, 2)
+        if visible and nz.outlier_probability and rng.random() < nz.outlier_probability:
+            angle = rng.uniform(0, 2 * np.pi)
+            offset = offset + nz.outlier_px * np.array([np.cos(angle), np.sin(angle)])
+        return Observation(capture_time=t, offset=offset if visible else np.array([np.nan, np.nan]),
+                           valid=visible, confidence=1.0 if visible else 0.0, frame_index=self.frame_index,
+                           truth=truth)
