@@ -34,7 +34,8 @@ def _aim_residual(target, phi0, phi1, length, n):
     x = r[0, 0] * d[0] + r[1, 0] * d[1] + r[2, 0] * d[2]
     y = r[0, 1] * d[0] + r[1, 1] * d[1] + r[2, 1] * d[2]
     z = r[0, 2] * d[0] + r[1, 2] * d[1] + r[2, 2] * d[2]
-    return np.array([x / z, y / z])
+    # Angles, not x/z and y/z: zero only with the target in front of the camera (z > 0).
+    return np.array([np.arctan2(x, z), np.arctan2(y, z)])
 
 
 @njit(cache=True)
@@ -42,7 +43,7 @@ def aim_angles(target: np.ndarray, phi_start: np.ndarray, length: float, n: int,
     """Bending angles (rad) whose optical axis passes through ``target`` (base frame, m)."""
     phi = phi_start.copy()
     eps = 1e-6
-    for _ in range(12):
+    for _ in range(30):
         r = _aim_residual(target, phi[0], phi[1], length, n)
         if abs(r[0]) + abs(r[1]) < 1e-10:
             break
@@ -56,6 +57,10 @@ def aim_angles(target: np.ndarray, phi_start: np.ndarray, length: float, n: int,
             break
         dphi0 = (j[1, 1] * r[0] - j[0, 1] * r[1]) / det
         dphi1 = (-j[1, 0] * r[0] + j[0, 0] * r[1]) / det
+        # Cap the step: far from the solution (target beside the camera) a full Newton step overshoots.
+        scale = min(1.0, 0.4 / max(abs(dphi0), abs(dphi1)))
+        dphi0 *= scale
+        dphi1 *= scale
         phi[0] = min(max(phi[0] - dphi0, lower), upper)
         phi[1] = min(max(phi[1] - dphi1, lower), upper)
     return phi

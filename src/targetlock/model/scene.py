@@ -58,6 +58,8 @@ class SceneParams:
     def check(self, prefix: str = "") -> None:
         if self.path == "waypoints" and not self.waypoints_file:
             raise ConfigError(f"{prefix}waypoints_file must name a CSV file when {prefix}path = 'waypoints'")
+        if self.path == "waypoints" and not Path(self.waypoints_file).is_file():
+            raise ConfigError(f"{prefix}waypoints_file = {self.waypoints_file!r}: no such file")
         period = 1.0 / self.linear_frequency
         if self.path == "linear" and 2 * self.stop_duration >= period:
             raise ConfigError(f"{prefix}stop_duration = {self.stop_duration} s leaves no time to move in a "

@@ -1,0 +1,114 @@
+"""The closed loop on the twin: the report's shape, safety of the commands, run folders."""
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from targetlock.cli import main
+from targetlock.controllers import ControllerConfig
+from targetlock.experiments.compare import with_controller, with_latency
+from targetlock.experiments.runfolder import RunFolder
+from targetlock.experiments.step_response import run_step_responses
+from targetlock.experiments.target_lock import RunConfig, run_target_lock
+from targetlock.loop.runner import LoopConfig
+from targetlock.rig.simulated import ObservationNoise
+
+BASE = RunConfig(loop=LoopConfig(seconds=22.0))
+
+
+@pytest.fixture(scope="module")
+def linear():
+    return {(k, lat): run_target_lock(with_latency(with_controller(BASE, k), lat))
+            for k in ("pi", "pi-hc", "pi-hc2") for lat in (0.4, 0.0)}
+
+
+def test_lock_keeps_the_target_in_view_with_report_sized_errors(linear):
+    s = linear[("pi", 0.4)]
+    assert s["out_of_view_fraction"] == 0.0
+    assert 60.0 < s["peak_px"] < 300.0          # report: PI peaks of order 150-250 px
+
+
+def test_hysteresis_compensation_lowers_the_peaks(linear):
+    assert linear[("pi-hc", 0.4)]["peak_px"] < linear[("pi", 0.4)]["peak_px"] - 15
+    assert linear[("pi-hc2", 0.4)]["peak_px"] < linear[("pi", 0.4)]["peak_px"] - 15
+
+
+def test_zero_latency_lowers_the_peaks(linear):
+    for k in ("pi", "pi-hc", "pi-hc2"):
+        assert linear[(k, 0.0)]["peak_px"] < linear[(k, 0.4)]["peak_px"]
+
+
+def test_step_response_overshoot_grows_with_i():
+    cfg = dataclasses.replace(BASE, loop=LoopConfig(seconds=5.0, metrics_after=0.0),
+                              controller=ControllerConfig(kind="pi"))
+    cfg = dataclasses.replace(cfg, twin=dataclasses.replace(cfg.twin, scene=dataclasses.replace(
+        cfg.twin.scene, path="step", start_tip_deg=(0.0, 0.0), start_delay=0.0)))
+    r = run_step_responses(cfg, [100, 300, 500])
+    over = [x["overshoot_px"] for x in r]
+    assert over[0] < over[1] < over[2]
+    assert over[1] > 0                                  # I = 300: a response with some overshoot
+    assert r[0]["rise_time_s"] > r[1]["rise_time_s"]   # low I: slow
+
+
+def test_lost_target_holds_the_motors():
+    cfg = dataclasses.replace(BASE, tracker=ObservationNoise(drop_probability=1.0), loop=LoopConfig(seconds=6.0))
+    d = run_target_lock(cfg)["_data"]
+    assert np.ptp(d[:, 10]) == 0.0 and np.ptp(d[:, 11]) == 0.0
+
+
+@pytest.mark.parametrize("kind", ["pi-hc", "ik", "pi-smith"])
+def test_noise_and_outliers_never_command_outside_the_limits(kind):
+    cfg = dataclasses.replace(with_controller(BASE, kind), loop=LoopConfig(seconds=10.0),
+                              tracker=ObservationNoise(noise_px=20.0, drop_probability=0.3,
+                                                       outlier_probability=0.2, outlier_px=2000.0, seed=3))
+    d = run_target_lock(cfg)["_data"]
+    lim = np.degrees(cfg.twin.drive.max_angle)
+    assert np.all(np.abs(d[:, 10:12]) <= lim + 1e-9)
+    assert np.all(np.abs(np.diff(d[:, 10:12], axis=0)) <= np.degrees(cfg.controller.max_rate) * 0.02 + 1e-6)
+
+
+def test_a_crash_keeps_what_was_recorded(tmp_path):
+    run = RunFolder("run", BASE, tmp_path / "crash")
+    calls = {"n": 0}
+
+    def hook(rig, t, truth):
+        calls["n"] += 1
+        if t > 3.0:
+            raise RuntimeError("camera unplugged")
+        return None
+
+    with pytest.raises(RuntimeError, match="camera unplugged"):
+        run_target_lock(BASE, run, frame_hook=hook)
+    rows = np.genfromtxt(tmp_path / "crash" / "timeseries.csv", delimiter=",", skip_header=1)
+    assert rows.shape[0] >= 140 and rows[-1, 0] == pytest.approx(3.0, abs=0.05)
+    assert (tmp_path / "crash" / "config.toml").exists()
+
+
+def test_run_command_writes_folder_and_json(tmp_path, capsys):
+    out = tmp_path / "r"
+    assert main(["run", "--controller", "pi", "--seconds", "6", "--latency", "0.2", "--out", str(out), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("rms_px", "peak_px", "p95_px", "mean_px", "lost_fraction", "sim_seconds", "wall_seconds"):
+        assert key in s
+    assert s["latency_s"] == 0.2 and s["controller"] == "pi"
+    for f in ("config.toml", "timeseries.csv", "tracking.png", "summary.json"):
+        assert (out / f).stat().st_size > 0
+    assert main(["run", "--config", str(out / "config.toml"), "--out", str(tmp_path / "again"), "--json"]) == 0
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again["rms_px"] == s["rms_px"]                 # reproducible from the folder
+
+
+def test_run_refuses_bad_input_naming_the_field(capsys):
+    assert main(["run", "--latency", "-1"]) == 2
+    assert "twin.camera.latency" in capsys.readouterr().err
+    assert main(["run", "--path", "/no/such.csv"]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_compare_command_table(tmp_path, capsys):
+    assert main(["compare", "--controllers", "pi", "ik", "--latencies", "0.4", "0", "--seconds", "5",
+                 "--out", str(tmp_path / "c"), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [(r["controller"], r["latency_s"]) for r in s["rows"]] == [("pi", 0.4), ("ik", 0.4), ("pi", 0.0), ("ik", 0.0)]
+    assert (tmp_path / "c" / "compare.png").exists()
