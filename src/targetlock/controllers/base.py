@@ -40,6 +40,8 @@ class ControllerConfig:
     ik_damping: float = param(0.7, lo=0.0, hi=0.99, doc="d of Eq. 4.6 (report: 0.7)")
     motor_delay: float = param(-1.0, unit="s", lo=-1.0, hi=5.0,
                                doc="delay of the motor position to match the video (-1: the camera latency)")
+    target_prediction: float = param(1.0, lo=0.0, hi=2.0,
+                                     doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")

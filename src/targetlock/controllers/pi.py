@@ -22,8 +22,12 @@ H returns to 0 continuously because width -> 0 at M = 0 for model 1 — this is 
 "redesign around the centre" (§4.2.2, last paragraph) done.
 
 ``pi-smith`` adds latency prediction (a Smith predictor): the offset is corrected by the image
-motion the motors have caused since the frame was captured, estimated from the motor history and
-the camera's pixels per radian of tip bend. It uses the model-2 compensation.
+motion the tip has made since the frame was captured — the target, placed at the assumed depth
+along its pixel ray at the capture-time pose, is re-projected from the current pose through the
+chained kinematics. The tip motion comes from an **online
+endoscope model** (the twin's own kernel with nominal parameters) driven by the measured motor
+angles, so motor motion that only crosses the hysteresis or the deadband — including the
+compensation's own steps — is not mistaken for tip motion. It uses the model-2 compensation.
 """
 from __future__ import annotations
 
@@ -32,6 +36,10 @@ from collections import deque
 
 import numpy as np
 
+from ..model.camera import CameraParams, project, unproject, world_to_camera
+from ..model.drives import DriveParams
+from ..model.kinematics import tip_pose
+from ..model.endoscope import EndoscopeParams, advance, initial_state, pack_params
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 
@@ -69,8 +77,20 @@ class MotorHistory:
 class PIController(Controller):
     """PI (``pi``), PI + compensation model 1 (``pi-hc``) or model 2 (``pi-hc2``), and ``pi-smith``."""
 
-    def __init__(self, cfg: ControllerConfig, *, px_per_rad: float = 450.0, latency: float = 0.4, **kw) -> None:
+    def __init__(self, cfg: ControllerConfig, *, px_per_rad: float = 450.0, latency: float = 0.4,
+                 endoscope: EndoscopeParams | None = None, model_dt: float = 0.001,
+                 camera: CameraParams | None = None, **kw) -> None:
         super().__init__(cfg, **kw)
+        self.camera = camera
+        e = endoscope or EndoscopeParams()
+        self.geometry = (e.tip_length, e.n_elements)
+        # Online model for the predictor: the handle follows the measured motor exactly.
+        self.model_params = pack_params(e,
+                                        DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3))
+        self.model_dt = model_dt
+        self.model_state = initial_state(1)
+        self.tip_history = MotorHistory(1.0, self.control_dt)
+        self.target_track: deque = deque(maxlen=5)
         self.kind = cfg.kind
         self.i_gain = cfg.i_gain * self.rad_per_tick      # rad/(px·s)
         self.p_gain = cfg.p_gain * self.rad_per_tick      # rad/px
@@ -88,6 +108,37 @@ class PIController(Controller):
         self.compensation = np.zeros(2)
         self.x = np.zeros(2)
         self.history.push(t, motor)
+        if self.kind == "pi-smith":
+            # The tip got to this motor position by bending outwards from straight.
+            self.model_state = initial_state(1)
+            for f in np.linspace(0.0, 1.0, 50)[1:]:
+                advance(self.model_state, self.model_params, (f * motor)[None, :], self.model_dt, 40)
+            advance(self.model_state, self.model_params, motor[None, :], self.model_dt, 1000)
+            self.tip_history = MotorHistory(self.delay + 1.0, self.control_dt)
+            self.tip_history.push(t, self.model_state[0, 2:4])
+        self.target_track: deque = deque(maxlen=5)
+
+    def _predict(self, x: np.ndarray, phi_then: np.ndarray, phi_now: np.ndarray,
+                 t_capture: float = 0.0, t_now: float = 0.0) -> np.ndarray:
+        """Where the target seen at ``x`` (px) with the tip at ``phi_then`` appears now with the tip
+        at ``phi_now`` (rad): the target, at the assumed depth, is moved on by its recent world
+        velocity over the latency and re-projected from the current pose."""
+        if self.camera is None:
+            return x - self.px_per_rad * (phi_now - phi_then)
+        cam, g = self.camera, self.geometry
+        then = tip_pose(phi_then[0], phi_then[1], g[0], g[1])
+        now = tip_pose(phi_now[0], phi_now[1], g[0], g[1])
+        p_world = then[:3, :3] @ unproject(x + (cam.cx, cam.cy), self.cfg.ik_depth, cam) + then[:3, 3]
+        self.target_track.append((t_capture, p_world))
+        horizon = self.cfg.target_prediction * (t_now - t_capture)
+        if horizon > 0 and len(self.target_track) >= 3:
+            ts = np.array([a for a, _ in self.target_track])
+            ps = np.array([b for _, b in self.target_track])
+            if ts[-1] - ts[0] > 1e-6:
+                velocity = np.polyfit(ts - ts[-1], ps, 1)[0]   # least-squares slope, m/s
+                p_world = p_world + velocity * horizon
+        px = project(world_to_camera(now, p_world), cam)
+        return px - (cam.cx, cam.cy) if np.all(np.isfinite(px)) else x
 
     def _width(self, motor: np.ndarray) -> np.ndarray:
         cfg = self.cfg
@@ -98,13 +149,15 @@ class PIController(Controller):
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
         self.history.push(t, motor)
+        if self.kind == "pi-smith":
+            advance(self.model_state, self.model_params, motor[None, :], self.model_dt,
+                    max(1, int(round(self.control_dt / self.model_dt))))
+            self.tip_history.push(t, self.model_state[0, 2:4])
         if obs is None:
             return self.setpoint  # hold: no integration without a valid observation
         x = np.asarray(obs.offset, dtype=float)
         if self.kind == "pi-smith":
-            # Image motion the motors caused since capture has not been seen yet: subtract it.
-            moved = motor - self.history.at(obs.capture_time)
-            x = x - self.px_per_rad * self.cfg.tip_gain * moved
+            x = self._predict(x, self.tip_history.at(obs.capture_time), self.tip_history.at(t), obs.capture_time, t)
         dt = self.frame_dt(obs)
         self.x = x
         self.integrator = self._clamp_integrator(self.integrator + self.i_gain * x * dt)

@@ -57,7 +57,8 @@ def build_controller(cfg: RunConfig, rig):
     twin = cfg.twin
     return make_controller(cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt, control_dt=1.0 / cfg.loop.rate,
                            camera=twin.camera, tip_length=twin.endoscope.tip_length, n_elements=twin.endoscope.n_elements,
-                           latency=twin.camera.latency, px_per_rad=px_per_rad(twin))
+                           latency=twin.camera.latency, px_per_rad=px_per_rad(twin), endoscope=twin.endoscope,
+                           model_dt=twin.model_dt)
 
 
 class _Recorder:
