@@ -10,7 +10,7 @@ import numpy as np
 from .model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
 from .model.twin import TwinConfig
 
-__all__ = ["bench_model"]
+__all__ = ["bench_model", "bench_loop"]
 
 
 def _randomised(base: EndoscopeParams, rng: np.random.Generator, n: int) -> list[EndoscopeParams]:
@@ -64,3 +64,36 @@ def bench_model(seconds: float = 200.0, batch_size: int = 1000, batch_seconds_si
         "batch_finite": bool(np.all(np.isfinite(out))),
         "threads": 1,
     }
+
+
+def bench_loop(seconds: float = 40.0, repeats: int = 3) -> dict:
+    """Closed loop (PI + compensation, ideal tracker, linear path) real-time factor on one core, and
+    the mean time of one inverse-kinematics controller step that processes a new observation."""
+    from .controllers import ControllerConfig
+    from .experiments.target_lock import RunConfig, build_controller, build_rig, run_target_lock
+    from .loop.runner import LoopConfig
+    from .rig.base import Observation
+
+    cfg = RunConfig(controller=ControllerConfig(kind="pi-hc"), loop=LoopConfig(seconds=seconds))
+    run_target_lock(dataclasses.replace(cfg, loop=LoopConfig(seconds=1.0)))  # compile / warm caches
+    walls = []
+    for _ in range(repeats):
+        walls.append(run_target_lock(cfg)["wall_seconds"])
+    wall = min(walls)
+
+    ik_cfg = dataclasses.replace(cfg, controller=ControllerConfig(kind="ik"))
+    rig = build_rig(ik_cfg)
+    ctrl = build_controller(ik_cfg, rig)
+    motor = np.array([-0.2, 0.05])
+    ctrl.reset(motor, 0.0)
+    rng = np.random.default_rng(0)
+    n = 2000
+    obs = [Observation(capture_time=0.02 * k, offset=rng.uniform(-150, 150, 2), valid=True) for k in range(n + 50)]
+    for k in range(50):
+        ctrl.step(obs[k], motor, 0.02 * (k + 1))
+    t0 = time.perf_counter()
+    for k in range(50, 50 + n):
+        ctrl.step(obs[k], motor, 0.02 * (k + 1))
+    ik_ms = (time.perf_counter() - t0) / n * 1e3
+    return {"realtime_factor": seconds / wall, "sim_seconds": seconds, "wall_seconds": wall,
+            "controller": "pi-hc", "ik_step_ms": ik_ms, "ik_steps": n}
