@@ -168,3 +168,36 @@ def _compare(args: argparse.Namespace) -> int:
     if args.json:
         print_json_last(summary)
     return 0
+
+
+# --------------------------------------------------------------------------------------------- latency
+def _latency_options(p: argparse.ArgumentParser) -> None:
+    _common(p)
+    p.add_argument("--latency", type=float, metavar="S", help="configured video latency of the twin (s)")
+    p.add_argument("--fps", type=float, help="camera frame rate")
+    p.add_argument("--inject-frame", type=int, default=20, help="frame at which the programmed offset starts")
+
+
+@command("latency", "measure the loop latency by counting frames until the handle moves (report §3.4.2)")(_latency_options)
+def _latency(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.latency import measure_latency
+    from .experiments.runfolder import RunFolder
+    from .experiments.target_lock import RunConfig
+
+    over: dict = {"twin": {"camera": {}}}
+    if args.latency is not None:
+        over["twin"]["camera"]["latency"] = args.latency
+    if args.fps is not None:
+        over["twin"]["camera"]["fps"] = args.fps
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=over)
+    run = RunFolder("latency", cfg, args.out)
+    r = measure_latency(cfg, inject_frame=args.inject_frame)
+    r["run_folder"] = str(run.path)
+    run.write_summary(r)
+    print(f"programmed offset at frame {r['inject_frame']}; the video shows the handle moving at frame "
+          f"{r['first_moving_frame']}: {r['frames']} frames at {r['fps']:g} fps = {r['measured_latency_s']:.3f} s "
+          f"(configured video latency {r['configured_latency_s']:g} s; resolution one frame, {r['resolution_s']:.3f} s)")
+    if args.json:
+        print_json_last(r)
+    return 0
