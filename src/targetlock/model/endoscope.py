@@ -33,7 +33,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ..config import param
 from .drives import DriveParams, drive_step
@@ -147,18 +147,9 @@ def _step_one(s, p, sp0, sp1, dt):
     s[3], s[5] = _tip_axis(s[1], s[3], s[5], n1, p, dt)
 
 
-@njit(cache=True, parallel=False)
+@njit(cache=True)
 def _advance(state, params, setpoints, dt, n_steps):
     for i in range(state.shape[0]):
-        s = state[i]
-        p = params[i]
-        for _ in range(n_steps):
-            _step_one(s, p, setpoints[i, 0], setpoints[i, 1], dt)
-
-
-@njit(cache=True, parallel=True)
-def _advance_parallel(state, params, setpoints, dt, n_steps):
-    for i in prange(state.shape[0]):
         s = state[i]
         p = params[i]
         for _ in range(n_steps):
@@ -177,15 +168,13 @@ def _simulate(state, params, setpoints, dt, substeps, out):
             out[t, i, :] = s
 
 
-def advance(state: np.ndarray, params: np.ndarray, setpoints: np.ndarray, dt: float, n_steps: int,
-            *, parallel: bool = False) -> np.ndarray:
+def advance(state: np.ndarray, params: np.ndarray, setpoints: np.ndarray, dt: float, n_steps: int) -> np.ndarray:
     """Advance ``state`` (N, 6) in place by ``n_steps`` internal steps of ``dt`` s.
 
     ``setpoints`` (N, 2) are handle setpoints in rad, held during the call and clamped to the drive
     range. A non-finite setpoint leaves that axis' drive standing where it is.
     """
-    fn = _advance_parallel if parallel else _advance
-    fn(state, params, np.ascontiguousarray(setpoints, dtype=np.float64), float(dt), int(n_steps))
+    _advance(state, params, np.ascontiguousarray(setpoints, dtype=np.float64), float(dt), int(n_steps))
     return state
 
 
