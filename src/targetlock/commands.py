@@ -9,6 +9,7 @@ from pathlib import Path
 from .cli import _common, command
 from .controllers.base import CONTROLLERS
 from .model.scene import PATHS
+from .model.twin import PRESETS as PRESETS_CHOICES
 
 PATH_CHOICES = [p for p in PATHS if p != "waypoints"]
 
@@ -72,6 +73,8 @@ def _print_summary(s: dict) -> None:
 # --------------------------------------------------------------------------------------------- run
 def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi-hc)")
+    p.add_argument("--rig", metavar="FILE", help="run on the rig this file describes (CANopen drives, NatNet, "
+                                                 "observations) on the wall clock, instead of the in-process twin")
     _loop_options(p)
 
 
@@ -82,9 +85,28 @@ def _run(args: argparse.Namespace) -> int:
     from .experiments.target_lock import RunConfig, run_target_lock
 
     cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
+    hw = None
+    if args.rig:
+        from .interfaces.rigfile import load_rig_file
+        hw = load_rig_file(args.rig)          # validate before anything moves or a folder is made
     run = RunFolder("run", cfg, args.out)
-    s = run_target_lock(cfg, run, progress=True)
+    if hw is not None:
+        from .config import save_toml
+        from .rig.hardware import HardwareRig
+        save_toml(hw, run.file("rig.toml"))
+        rig = HardwareRig(hw, cfg.twin.camera)
+        try:
+            s = run_target_lock(cfg, run, progress=True, rig=rig)
+        finally:
+            rig.close()
+    else:
+        s = run_target_lock(cfg, run, progress=True)
     _print_summary(s)
+    if "timing_ms" in s:
+        tm = s["timing_ms"]
+        print(f"  loop period jitter p50 {tm['period_jitter_p50']:.2f} ms, p99 {tm['period_jitter_p99']:.2f} ms, "
+              f"max {tm['period_jitter_max']:.2f} ms; frame arrival to setpoint sent p50 "
+              f"{tm['frame_to_setpoint_p50']:.2f} ms, p99 {tm['frame_to_setpoint_p99']:.2f} ms")
     print(f"  run folder: {run.path}  (plots: {run.file('tracking.png')})")
     if args.json:
         print_json_last({k: v for k, v in s.items() if not k.startswith("_")})
@@ -200,4 +222,41 @@ def _latency(args: argparse.Namespace) -> int:
           f"(configured video latency {r['configured_latency_s']:g} s; resolution one frame, {r['resolution_s']:.3f} s)")
     if args.json:
         print_json_last(r)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- sim-rig
+def _sim_rig_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", metavar="FILE", help="rig file whose [can], [natnet] and [observations] the twin serves "
+                                                 "(default: udp_loopback bus, NatNet on 127.0.0.1)")
+    p.add_argument("--config", metavar="FILE", help="run config (TOML) whose twin settings to simulate")
+    p.add_argument("--preset", choices=PRESETS_CHOICES, help="endoscope preset")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+
+
+@command("sim-rig", "serve the digital twin over CANopen (CiA 402) and NatNet for `run --rig`")(_sim_rig_options)
+def _sim_rig(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from .experiments.common import build_config
+    from .experiments.target_lock import RunConfig
+    from .interfaces.rigfile import HardwareRigConfig, load_rig_file
+    from .rig.twin_process import serve_twin_rig
+
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset)
+    hw = load_rig_file(args.rig) if args.rig else HardwareRigConfig()
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.duration > 0:
+        timer = threading.Timer(args.duration, stop.set)
+        timer.daemon = True
+        timer.start()
+    try:
+        serve_twin_rig(hw, cfg.twin, stop, on_ready=lambda line: print(line, flush=True))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        stop.set()
     return 0

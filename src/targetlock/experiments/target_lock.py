@@ -64,16 +64,21 @@ def build_controller(cfg: RunConfig, rig):
 class _Recorder:
     """Collects one row per tick, streaming to the run folder's CSV as it goes."""
 
-    def __init__(self, rig: SimulatedRig, controller, writer=None) -> None:
+    def __init__(self, rig, controller, writer=None) -> None:
         self.rig, self.ctrl, self.writer = rig, controller, writer
         self.rows: list[list[float]] = []
         self.last_obs = None
+        self.lateness: list[float] = []
+        self.internal: list[float] = []
 
     def __call__(self, tick: Tick) -> None:
         rig = self.rig
         truth = rig.truth_offset(tick.time)
+        self.lateness.append(tick.lateness)
         if tick.observation is not None:
             self.last_obs = tick.observation
+            if math.isfinite(tick.observation.arrival_time):
+                self.internal.append(tick.sent - tick.observation.arrival_time)
         o = self.last_obs
         ox, oy = (o.offset[0], o.offset[1]) if o is not None else (math.nan, math.nan)
         sig = list(self.ctrl.signals().values()) + [math.nan, math.nan]
@@ -114,11 +119,16 @@ def metrics(data: np.ndarray, frame_log: list[tuple[float, bool]], after: float)
 
 
 def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: bool = False,
-                    frame_hook=None) -> dict:
-    """Run the closed loop as configured; returns the summary (and fills ``run`` if given)."""
-    rig = build_rig(cfg, frame_hook)
+                    frame_hook=None, rig=None) -> dict:
+    """Run the closed loop as configured; returns the summary (and fills ``run`` if given).
+
+    ``rig``: a rig to run on instead of the in-process twin (e.g. a :class:`HardwareRig`); it
+    then runs on the wall clock and must offer ``truth_offset``, ``tip_angles`` and ``frame_log``."""
+    hardware = rig is not None
+    rig = rig if hardware else build_rig(cfg, frame_hook)
     ctrl = build_controller(cfg, rig)
-    loop = ControlLoop(rig, ctrl, rate=cfg.loop.rate, clock=WallClock() if cfg.realtime else SimClock())
+    realtime = cfg.realtime or hardware
+    loop = ControlLoop(rig, ctrl, rate=cfg.loop.rate, clock=WallClock() if realtime else SimClock())
     writer = run.timeseries(COLUMNS) if run is not None else None
     rec = _Recorder(rig, ctrl, writer)
     bar = None
@@ -142,9 +152,16 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
             bar.close()
     data = np.asarray(rec.rows, dtype=float)
     summary = metrics(data, rig.frame_log, cfg.loop.metrics_after)
-    summary.update({"controller": cfg.controller.kind, "path": cfg.twin.scene.path, "latency_s": cfg.twin.camera.latency,
+    summary.update({"rig": "hardware" if hardware else "twin", "controller": cfg.controller.kind, "path": cfg.twin.scene.path, "latency_s": cfg.twin.camera.latency,
                     "fps": cfg.twin.camera.fps, "preset": cfg.twin.preset, "sim_seconds": cfg.loop.seconds,
                     "wall_seconds": wall, "realtime_factor": cfg.loop.seconds / wall if wall > 0 else math.inf})
+    if realtime:
+        late, internal = np.array(rec.lateness) * 1e3, np.array(rec.internal) * 1e3
+        summary["timing_ms"] = {
+            "period_jitter_p50": float(np.percentile(late, 50)), "period_jitter_p99": float(np.percentile(late, 99)),
+            "period_jitter_max": float(late.max()),
+            "frame_to_setpoint_p50": float(np.percentile(internal, 50)) if internal.size else math.nan,
+            "frame_to_setpoint_p99": float(np.percentile(internal, 99)) if internal.size else math.nan}
     summary["_data"] = data
     if run is not None:
         plot_run(data, cfg, run.file("tracking.png"))

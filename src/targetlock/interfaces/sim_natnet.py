@@ -69,7 +69,8 @@ class ServerStats:
 
 
 class SimNatNetServer:
-    """Streams ``pose_source()`` as two rigid bodies until :meth:`stop` (or ``max_frames``)."""
+    """Streams ``pose_source()`` until :meth:`stop` (or ``max_frames``): it returns (base 4x4, tip 4x4)
+    or (base, tip, {body_id: 4x4}) with further rigid bodies, in metres, or None."""
 
     def __init__(self, config: SimNatNetConfig,
                  pose_source: Callable[[], tuple[np.ndarray, np.ndarray] | None]) -> None:
@@ -180,7 +181,10 @@ class SimNatNetServer:
             zero = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, False)
             return [(c.base_body_id, *zero), (c.tip_body_id, *zero)]
         out = []
-        for rid, pose in ((c.base_body_id, poses[0]), (c.tip_body_id, poses[1])):
+        bodies = [(c.base_body_id, poses[0]), (c.tip_body_id, poses[1])]
+        if len(poses) > 2:  # further rigid bodies, e.g. the target on the robot arm: {id: pose}
+            bodies += sorted(poses[2].items())
+        for rid, pose in bodies:
             pose = np.asarray(pose, dtype=float)
             out.append((rid, tuple(pose[:3, 3]), tuple(rotation_to_quaternion(pose[:3, :3])), 0.0002, True))
         return out

@@ -37,11 +37,14 @@ class Tick:
     motor: np.ndarray | None = None          # rad
     setpoint: np.ndarray | None = None       # rad
     ticks: np.ndarray | None = None          # what was sent
+    sent: float = 0.0                        # clock time right after the setpoints were sent (s)
 
 
 class ControlLoop:
-    def __init__(self, rig: Rig, controller: Controller, *, rate: float, clock: Clock | None = None) -> None:
+    def __init__(self, rig: Rig, controller: Controller, *, rate: float, clock: Clock | None = None,
+                 silence: float = 0.25) -> None:
         self.rig = rig
+        self.silence = silence
         self.controller = controller
         self.period = 1.0 / rate
         self.clock = clock or SimClock()
@@ -53,6 +56,11 @@ class ControlLoop:
         if not drives.homed:
             drives.home()
         self.clock.start()
+        start_clock = getattr(rig, "start_clock", None)  # hardware rigs align their clock with the loop's
+        if start_clock is not None:
+            start_clock()
+        note = getattr(drives, "note_observation", None)  # the safety supervisor's target-lost hold
+        last_seen = 0.0
         ctrl.reset(drives.positions() * rpt, 0.0)
         n = int(round(seconds / self.period))
         tick = Tick()
@@ -64,10 +72,17 @@ class ControlLoop:
                 rig.advance(t)
                 arrived = rig.observations.poll(t)
                 obs = arrived[-1] if arrived else None
+                if note is not None:
+                    if obs is not None:
+                        last_seen = t
+                        note(obs.valid, t)
+                    elif t - last_seen > self.silence:
+                        note(False, t)  # no frames at all counts as lost
                 motor = drives.positions() * rpt
                 setpoint = ctrl.step(obs, motor, t)
                 ticks = np.rint(setpoint / rpt).astype(np.int64)
                 drives.send_setpoints(ticks)
+                tick.sent = self.clock.now()
                 done = k
                 if on_tick is not None:
                     tick.index, tick.time, tick.observation = k, t, obs

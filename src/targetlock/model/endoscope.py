@@ -210,8 +210,12 @@ def calibrate_handle_radius(e: EndoscopeParams, handle_angle: float = math.radia
 
 
 def handle_for_tip(e: EndoscopeParams, tip_angle: float) -> float:
-    """Handle angle (rad) that bends a straight axis out to ``tip_angle`` (rad), quasi-statically."""
-    sign = 1.0 if tip_angle >= 0 else -1.0
+    """Handle angle (rad) that bends a straight axis out to ``tip_angle`` (rad), quasi-statically.
+
+    A straight tip needs the handle at neutral: 0 for ``tip_angle == 0``."""
+    if tip_angle == 0.0:
+        return 0.0
+    sign = 1.0 if tip_angle > 0 else -1.0
     phi = abs(tip_angle)
     normal = e.mu_n * (phi + e.friction_offset) if e.friction_model == "both-angles" else e.mu_n * phi
     tension = (e.tip_stiffness * phi + normal) / e.cable_arm

@@ -28,6 +28,8 @@ class Observation:
     frame_index: int = -1
     truth: np.ndarray | None = field(default=None, compare=False)
     """Ground-truth offset (px) where the rig knows it (twin); never used by controllers."""
+    arrival_time: float = float("nan")
+    """When the observation became available to the loop (s, rig clock), for latency statistics."""
 
 
 class DriveFault(RuntimeError):

@@ -8,6 +8,7 @@ dropped frames and outliers, and puts the observation on the latency line; the l
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -174,7 +175,7 @@ class SimulatedRig(Rig):
         self.frames_valid += int(valid)
         self.frame_log.append((t, valid))
         if obs is not None:
-            self.observations.line.push(t, obs)
+            self.observations.line.push(t, dataclasses.replace(obs, arrival_time=t + self.twin.camera.latency))
 
     def _ideal_observation(self, t: float, truth: np.ndarray) -> Observation | None:
         nz = self.noise

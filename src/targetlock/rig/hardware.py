@@ -1,0 +1,148 @@
+"""A hardware rig built from a rig file: CiA 402 drives behind the safety supervisor, NatNet motion
+capture, and an observation source — the same interfaces the loop uses on the twin.
+
+Observation sources:
+
+* ``mocap``: the target's rigid body projected into the tip camera (the tip body's frame is the
+  camera frame), sampled at the camera frame rate and delivered after the configured video latency.
+  It validates a rig against motion capture, and it is how the twin in another process
+  (``targetlock sim-rig``) is seen.
+* ``camera``: endoscope frames from a capture device or video file through the tracker, in a thread
+  with a newest-only hand-off (see :mod:`targetlock.vision`).
+
+Times: the loop's clock (s since the loop started) for observations; the NatNet client's samples
+carry monotonic times, converted with the offset taken at start.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..interfaces.cia402 import CanopenDrives
+from ..interfaces.mocap import quaternion_to_rotation
+from ..interfaces.natnet import NatNetClient
+from ..interfaces.rigfile import HardwareRigConfig
+from ..interfaces.safety import SafeDrives
+from ..model.camera import CameraParams, LatencyLine, project, world_to_camera
+from ..model.kinematics import bending_angles_from_poses
+from .base import Observation, ObservationSource, Rig
+
+__all__ = ["HardwareRig", "MocapObservations", "pose_of"]
+
+
+def pose_of(body) -> np.ndarray:
+    """4x4 pose (m) of a NatNet rigid body."""
+    h = np.eye(4)
+    h[:3, :3] = quaternion_to_rotation(body.orientation)
+    h[:3, 3] = body.position
+    return h
+
+
+class MocapObservations(ObservationSource):
+    """The target as an ideal camera at the tip would see it, from motion capture."""
+
+    def __init__(self, client: NatNetClient, camera: CameraParams, *, base_id: int, tip_id: int, target_id: int,
+                 clock_offset: float) -> None:
+        self.client, self.camera = client, camera
+        self.base_id, self.tip_id, self.target_id = base_id, tip_id, target_id
+        self.line = LatencyLine(camera.latency)
+        self.clock_offset = clock_offset      # monotonic time of loop time zero
+        self.next_frame = 0
+        self.frame_log: list[tuple[float, bool]] = []
+
+    def measure(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(offset px from the image centre, bending angles rad) now, or None without a usable sample."""
+        s = self.client.get()
+        if s is None:
+            return None
+        bodies = [s.rigid_body(i) for i in (self.base_id, self.tip_id, self.target_id)]
+        if any(b is None or not b.usable for b in bodies):
+            return None
+        base, tip, target = (pose_of(b) for b in bodies)
+        cam_in_base = np.linalg.inv(base) @ tip
+        target_in_base = (np.linalg.inv(base) @ target)[:3, 3]
+        px = project(world_to_camera(cam_in_base, target_in_base), self.camera)
+        c = self.camera
+        if not (0 <= px[0] < c.width and 0 <= px[1] < c.height):
+            px = np.array([np.nan, np.nan])
+        return px - (c.cx, c.cy), bending_angles_from_poses(base, tip)
+
+    def poll(self, now: float) -> list[Observation]:
+        period = 1.0 / self.camera.fps
+        while self.next_frame * period <= now + 1e-9:
+            m = self.measure()
+            valid = m is not None and bool(np.all(np.isfinite(m[0])))
+            offset = m[0] if valid else np.array([np.nan, np.nan])
+            t = self.next_frame * period
+            self.line.push(t, Observation(capture_time=t, offset=offset, valid=valid, frame_index=self.next_frame,
+                                          truth=offset, arrival_time=t + self.camera.latency))
+            self.frame_log.append((t, valid))
+            self.next_frame += 1
+        return [item for _, item in self.line.pop_ready(now)]
+
+
+class HardwareRig(Rig):
+    """Drives on CANopen (behind :class:`SafeDrives`), NatNet and an observation source."""
+
+    def __init__(self, config: HardwareRigConfig, camera: CameraParams) -> None:
+        self.config = config
+        self.camera = camera
+        # Load the JIT-compiled kinematics now, not in the loop's first tick (~0.3 s).
+        bending_angles_from_poses(np.eye(4), np.eye(4))
+        self._t0 = time.monotonic()
+        self.client = NatNetClient(config.natnet)
+        self.client.start()
+        inner = CanopenDrives(config.can)
+        self.drives = SafeDrives(inner, config.safety, clock=lambda: time.monotonic() - self._t0)
+        obs = config.observations
+        if obs.kind == "mocap":
+            self.observations = MocapObservations(self.client, camera, base_id=config.natnet.base_body_id,
+                                                  tip_id=config.natnet.tip_body_id, target_id=obs.target_body_id,
+                                                  clock_offset=self._t0)
+        else:
+            from ..vision.live import CameraObservations
+            self.observations = CameraObservations(obs, camera)
+
+    def start_clock(self) -> None:
+        """Loop time zero is now (called by the loop right after homing)."""
+        self._t0 = time.monotonic()
+        if isinstance(self.observations, MocapObservations):
+            self.observations.clock_offset = self._t0
+
+    @property
+    def time(self) -> float:
+        return time.monotonic() - self._t0
+
+    @property
+    def frame_log(self) -> list[tuple[float, bool]]:
+        return getattr(self.observations, "frame_log", [])
+
+    def advance(self, until: float) -> None:
+        pass  # the wall clock moves the hardware; the loop sleeps until each deadline
+
+    def truth_offset(self, t: float | None = None) -> np.ndarray:
+        """Where motion capture sees the target now (px from centre); NaN without mocap."""
+        if isinstance(self.observations, MocapObservations):
+            m = self.observations.measure()
+            if m is not None:
+                return m[0]
+        return np.array([math.nan, math.nan])
+
+    def tip_angles(self) -> np.ndarray:
+        """Bending angles (rad) measured by motion capture; NaN without a sample."""
+        if isinstance(self.observations, MocapObservations):
+            m = self.observations.measure()
+            if m is not None:
+                return m[1]
+        return np.array([math.nan, math.nan])
+
+    def close(self) -> None:
+        try:
+            self.drives.close()
+        finally:
+            self.client.stop()
+            closer = getattr(self.observations, "close", None)
+            if closer is not None:
+                closer()

@@ -1,0 +1,85 @@
+"""`targetlock sim-rig` in another process + `run --rig`: the unchanged driver, NatNet client and loop on
+the wall clock give the same lock as the in-process twin."""
+from __future__ import annotations
+
+import os
+import random
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import targetlock
+from targetlock.cli import main
+
+SRC = str(Path(targetlock.__file__).resolve().parent.parent)
+SECONDS = 14.0
+
+
+def free_port(kind=socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def rig_file(path: Path) -> Path:
+    group = f"239.255.{random.randint(100, 250)}.{random.randint(1, 250)}"
+    path.write_text(f"""
+[can]
+node_ids = [1, 2]
+homing_method = 37
+[can.bus]
+interface = "udp_loopback"
+channel = "{group}"
+port = {free_port()}
+[natnet]
+multicast = false
+command_port = {free_port()}
+data_port = {free_port()}
+[observations]
+kind = "mocap"
+target_body_id = 3
+""")
+    return path
+
+
+def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp_path, capsys):
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("[twin.scene]\nstart_tip_deg = [0.0, 0.0]\n[controller]\nkind = \"pi-hc\"\n")
+    rig = rig_file(tmp_path / "rig.toml")
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "sim-rig", "--rig", str(rig), "--config", str(cfg),
+                             "--duration", str(SECONDS + 30)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        ready, _, _ = select.select([proc.stdout], [], [], 30.0)
+        line = proc.stdout.readline() if ready else ""
+        if "sim-rig ready" not in line:
+            proc.kill()
+            pytest.fail(f"sim-rig did not start: {line!r} {proc.stderr.read()[-2000:]}")
+        assert main(["run", "--rig", str(rig), "--config", str(cfg), "--seconds", str(SECONDS),
+                     "--out", str(tmp_path / "hw"), "--json"]) == 0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    import json
+    hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert main(["run", "--config", str(cfg), "--seconds", str(SECONDS), "--out", str(tmp_path / "twin"), "--json"]) == 0
+    twin = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert hw["rig"] == "hardware" and twin["rig"] == "twin"
+    # Stated tolerance (docs/hardware.md): rms and peak within 10 %, tip range within 1 deg.
+    assert hw["rms_px"] == pytest.approx(twin["rms_px"], rel=0.10)
+    assert hw["peak_px"] == pytest.approx(twin["peak_px"], rel=0.10)
+    assert hw["tip_range_deg"] == pytest.approx(twin["tip_range_deg"], abs=1.0)
+    assert hw["lost_fraction"] == 0.0
+    t = hw["timing_ms"]
+    assert t["frame_to_setpoint_p50"] < 25.0
+    assert (tmp_path / "hw" / "rig.toml").exists()
