@@ -38,6 +38,8 @@ def _hysteresis_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--held", type=float, nargs="+", metavar="DEG", help="held tip angles of the other axis (deg)")
     p.add_argument("--amplitudes", type=float, nargs="+", metavar="DEG", help="handle sweep amplitudes (deg)")
     p.add_argument("--speed", type=float, metavar="DEG/S", help="handle speed (deg/s)")
+    p.add_argument("--rig", metavar="FILE", help="sweep a rig's drives and measure the tip by motion capture, in "
+                                                 "real time (default: simulate the twin)")
 
 
 @command("hysteresis", "hysteresis and deadband sweep of one axis (report §3.1, Fig. 3.2)")(_hysteresis_options)
@@ -57,15 +59,29 @@ def _hysteresis(args: argparse.Namespace) -> int:
     if args.speed:
         over["sweep_speed_deg_s"] = args.speed
     cfg = build_config(HysteresisConfig, config_file=args.config, preset=args.preset, overrides=over)
+    hw = None
+    if args.rig:
+        from .interfaces.rigfile import load_rig_file
+        hw = load_rig_file(args.rig)
     run = RunFolder("hysteresis", cfg, args.out)
-    res = run_sweep(cfg)
+    if hw is not None:
+        from .experiments.hysteresis import run_sweep_on_rig
+        from .rig.hardware import HardwareRig
+        rig = HardwareRig(hw, cfg.twin.camera)
+        try:
+            res = run_sweep_on_rig(cfg, rig)
+        finally:
+            rig.close()
+    else:
+        res = run_sweep(cfg)
     with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle"]) as ts:
         for c, held in enumerate(cfg.held_angles_deg):
             n = res.time.size
             ts.write_many(np.column_stack([res.time, np.full(n, c), np.full(n, held), np.degrees(res.handle[:, c]),
                                            np.degrees(res.tip[:, c]), np.degrees(res.held_tip[:, c]), res.phase]))
     plot(res, cfg, run.file("hysteresis.png"))
-    summary = {"preset": cfg.twin.preset, "total_gain": res.total_gain, "curves": res.curves, "run_folder": str(run.path)}
+    summary = {"source": "rig (motion capture)" if hw is not None else "twin", "preset": cfg.twin.preset,
+               "total_gain": res.total_gain, "curves": res.curves, "run_folder": str(run.path)}
     run.write_summary(summary)
     print(f"hysteresis sweep, preset {cfg.twin.preset!r}: total gain {res.total_gain:.3f} (report: 90/110 = 0.818)")
     print(f"{'held (deg)':>10} {'width (deg)':>12} {'deadband (deg)':>15} {'stop angle (deg)':>17}")

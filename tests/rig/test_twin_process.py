@@ -83,3 +83,32 @@ def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp
     t = hw["timing_ms"]
     assert t["frame_to_setpoint_p50"] < 25.0
     assert (tmp_path / "hw" / "rig.toml").exists()
+
+
+def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_path, capsys):
+    rig = rig_file(tmp_path / "rig.toml")
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "sim-rig", "--rig", str(rig), "--duration", "60"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", "60", "--json"]
+    try:
+        ready, _, _ = select.select([proc.stdout], [], [], 30.0)
+        if "sim-rig ready" not in (proc.stdout.readline() if ready else ""):
+            proc.kill()
+            pytest.fail(f"sim-rig did not start: {proc.stderr.read()[-2000:]}")
+        assert main(["hysteresis", "--rig", str(rig), "--out", str(tmp_path / "hw"), *sweep]) == 0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    import json
+    hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert main(["hysteresis", "--out", str(tmp_path / "twin"), *sweep]) == 0
+    twin = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert hw["source"].startswith("rig") and (tmp_path / "hw" / "hysteresis.png").exists()
+    a, b = hw["curves"][0], twin["curves"][0]
+    assert a["hysteresis_width_deg"] == pytest.approx(b["hysteresis_width_deg"], abs=2.0)
+    assert a["total_gain"] == pytest.approx(b["total_gain"], abs=0.03)
+    assert a["reversal_width_deg"] == pytest.approx(b["reversal_width_deg"], abs=2.0)

@@ -24,7 +24,7 @@ from ..config import ConfigError, param
 from ..model.endoscope import handle_for_tip, initial_state, pack_params, simulate
 from ..model.twin import TwinConfig
 
-__all__ = ["HysteresisConfig", "HysteresisResult", "run_sweep", "analyse_curve", "plot"]
+__all__ = ["HysteresisConfig", "HysteresisResult", "run_sweep", "run_sweep_on_rig", "analyse_curve", "plot"]
 
 
 @dataclass(frozen=True)
@@ -84,40 +84,88 @@ def _sweep_profile(cfg: HysteresisConfig) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pos), np.concatenate(idx).astype(int)
 
 
-def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
-    """Simulate the sweep for every held angle (one batch) and measure the curves."""
-    twin = cfg.twin
-    e = twin.endoscope
-    n = len(cfg.held_angles_deg)
-    dt_sample = 1.0 / cfg.sample_rate
-    substeps = max(1, int(round(dt_sample / twin.model_dt)))
-    dt = dt_sample / substeps
-    sweep, phase = _sweep_profile(cfg)
+def _program(cfg: HysteresisConfig, sample_rate: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Handle setpoints (T, curves, 2) rad at ``sample_rate``, cycle index per sample (-1 while the
+    held axis is being positioned: bent out over 3 s, settled 1 s), and the positioning length."""
+    dt_sample = 1.0 / sample_rate
+    sweep, phase = _sweep_profile(dataclasses.replace(cfg, sample_rate=sample_rate))
+    e = cfg.twin.endoscope
     held_handle = np.array([handle_for_tip(e, math.radians(h)) for h in cfg.held_angles_deg])
-    # Positioning: bend the held axis out over 3 s, settle 1 s, then sweep.
     n_pos = int(round(4.0 / dt_sample))
     ramp = np.clip(np.arange(n_pos) / (3.0 / dt_sample), 0.0, 1.0)
-    total = n_pos + sweep.size
-    setpoints = np.zeros((total, n, 2))
+    setpoints = np.zeros((n_pos + sweep.size, len(held_handle), 2))
     swept, held = cfg.axis, 1 - cfg.axis
     setpoints[:n_pos, :, held] = ramp[:, None] * held_handle[None, :]
     setpoints[n_pos:, :, held] = held_handle[None, :]
     setpoints[n_pos:, :, swept] = sweep[:, None]
-    params = pack_params([e] * n, twin.drive)
-    out = simulate(initial_state(n), params, setpoints, dt, substeps)
-    t = np.arange(total) * dt_sample
-    ph = np.concatenate([np.full(n_pos, -1), phase])
-    handle = out[:, :, swept]
-    tip = out[:, :, 2 + swept]
-    held_tip = out[:, :, 2 + held]
+    return setpoints, np.concatenate([np.full(n_pos, -1), phase]), n_pos
+
+
+def _result(cfg: HysteresisConfig, t, handle, tip, held_tip, phase, n_pos) -> HysteresisResult:
     curves = []
-    for c in range(n):
-        m = analyse_curve(handle[n_pos:, c], tip[n_pos:, c], phase, len(cfg.amplitudes_deg))
+    for c in range(handle.shape[1]):
+        m = analyse_curve(handle[n_pos:, c], tip[n_pos:, c], phase[n_pos:], len(cfg.amplitudes_deg))
         m["second_angle_deg"] = float(cfg.held_angles_deg[c])
-        m["second_angle_measured_deg"] = float(np.degrees(np.mean(held_tip[n_pos:, c])))
+        m["second_angle_measured_deg"] = float(np.degrees(np.nanmean(held_tip[n_pos:, c])))
         curves.append(m)
     zero = int(np.argmin(np.abs(np.asarray(cfg.held_angles_deg))))
-    return HysteresisResult(t, handle, tip, held_tip, ph, curves, curves[zero]["total_gain"])
+    return HysteresisResult(t, handle, tip, held_tip, phase, curves, curves[zero]["total_gain"])
+
+
+def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
+    """Simulate the sweep for every held angle (one batch) and measure the curves."""
+    twin = cfg.twin
+    dt_sample = 1.0 / cfg.sample_rate
+    substeps = max(1, int(round(dt_sample / twin.model_dt)))
+    setpoints, phase, n_pos = _program(cfg, cfg.sample_rate)
+    n = setpoints.shape[1]
+    out = simulate(initial_state(n), pack_params([twin.endoscope] * n, twin.drive), setpoints,
+                   dt_sample / substeps, substeps)
+    swept, held = cfg.axis, 1 - cfg.axis
+    t = np.arange(setpoints.shape[0]) * dt_sample
+    return _result(cfg, t, out[:, :, swept], out[:, :, 2 + swept], out[:, :, 2 + held], phase, n_pos)
+
+
+def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, clock=None) -> HysteresisResult:
+    """The same sweep through a rig's drives, the tip measured by the rig (motion capture), in real time.
+
+    Curves run one after the other; between them both handles return to neutral over 3 s.
+    ``rig`` needs ``drives`` and ``tip_angles()`` (rad); handle angles are the drives' positions.
+    """
+    from ..loop.clock import WallClock
+    clock = clock or WallClock()
+    drives = rig.drives
+    rpt = drives.rad_per_tick
+    if not drives.homed:
+        drives.home()
+    setpoints, phase, n_pos = _program(cfg, sample_rate)
+    n_t, n = setpoints.shape[:2]
+    handle = np.full((n_t, n, 2), np.nan)
+    tips = np.full((n_t, n, 2), np.nan)
+    back = np.linspace(1.0, 0.0, int(3.0 * sample_rate))
+    clock.start()
+    k_total = 0
+    for c in range(n):
+        for k in range(n_t):
+            k_total += 1
+            clock.sleep_until(k_total / sample_rate)
+            drives.send_setpoints(np.rint(setpoints[k, c] / rpt).astype(np.int64))
+            handle[k, c] = drives.positions() * rpt
+            tips[k, c] = rig.tip_angles()
+        last = setpoints[-1, c]
+        for f in back:  # return to neutral before the next curve
+            k_total += 1
+            clock.sleep_until(k_total / sample_rate)
+            drives.send_setpoints(np.rint(f * last / rpt).astype(np.int64))
+    # A missed mocap sample holds the previous measurement.
+    for c in range(n):
+        for a in range(2):
+            col = tips[:, c, a]
+            idx = np.where(np.isfinite(col), np.arange(n_t), 0)
+            tips[:, c, a] = col[np.maximum.accumulate(idx)]
+    swept, held = cfg.axis, 1 - cfg.axis
+    t = np.arange(n_t) / sample_rate
+    return _result(cfg, t, handle[:, :, swept], tips[:, :, swept], tips[:, :, held], phase, n_pos)
 
 
 def _branch_gap(inc_h, inc_t, dec_h, dec_t) -> np.ndarray:
