@@ -2,6 +2,7 @@
 the wall clock give the same lock as the in-process twin."""
 from __future__ import annotations
 
+import json
 import os
 import random
 import select
@@ -9,7 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
-import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -48,29 +49,34 @@ target_body_id = 3
     return path
 
 
-def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp_path, capsys):
-    cfg = tmp_path / "run.toml"
-    cfg.write_text("[twin.scene]\nstart_tip_deg = [0.0, 0.0]\n[controller]\nkind = \"pi-hc\"\n")
-    rig = rig_file(tmp_path / "rig.toml")
+@contextmanager
+def sim_rig(*args: str):
+    """`targetlock sim-rig ARGS` in another process, ready on entry, stopped (SIGTERM) on exit."""
     env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "sim-rig", "--rig", str(rig), "--config", str(cfg),
-                             "--duration", str(SECONDS + 30)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "sim-rig", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 30.0)
         line = proc.stdout.readline() if ready else ""
         if "sim-rig ready" not in line:
             proc.kill()
             pytest.fail(f"sim-rig did not start: {line!r} {proc.stderr.read()[-2000:]}")
-        assert main(["run", "--rig", str(rig), "--config", str(cfg), "--seconds", str(SECONDS),
-                     "--out", str(tmp_path / "hw"), "--json"]) == 0
+        yield proc
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
-    import json
+
+
+def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp_path, capsys):
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("[twin.scene]\nstart_tip_deg = [0.0, 0.0]\n[controller]\nkind = \"pi-hc\"\n")
+    rig = rig_file(tmp_path / "rig.toml")
+    with sim_rig("--rig", str(rig), "--config", str(cfg), "--duration", str(SECONDS + 30)):
+        assert main(["run", "--rig", str(rig), "--config", str(cfg), "--seconds", str(SECONDS),
+                     "--out", str(tmp_path / "hw"), "--json"]) == 0
     hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert main(["run", "--config", str(cfg), "--seconds", str(SECONDS), "--out", str(tmp_path / "twin"), "--json"]) == 0
     twin = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -87,23 +93,9 @@ def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp
 
 def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_path, capsys):
     rig = rig_file(tmp_path / "rig.toml")
-    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "sim-rig", "--rig", str(rig), "--duration", "60"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", "60", "--json"]
-    try:
-        ready, _, _ = select.select([proc.stdout], [], [], 30.0)
-        if "sim-rig ready" not in (proc.stdout.readline() if ready else ""):
-            proc.kill()
-            pytest.fail(f"sim-rig did not start: {proc.stderr.read()[-2000:]}")
+    with sim_rig("--rig", str(rig), "--duration", "60"):
         assert main(["hysteresis", "--rig", str(rig), "--out", str(tmp_path / "hw"), *sweep]) == 0
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    import json
     hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert main(["hysteresis", "--out", str(tmp_path / "twin"), *sweep]) == 0
     twin = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
