@@ -1,0 +1,302 @@
+"""Score a tracker on rendered sequences with known ground truth.
+
+Each sequence is rendered by :class:`~targetlock.vision.render.Renderer` (distorted endoscope
+camera, round field of view, light fall-off, specular glints, motion blur, noise) at the camera's
+frame rate; the tracker selects the target on frame 0 at its true position and is then fed the
+remaining frames. Default sequences (:data:`SEQUENCES`):
+
+``slow``      target drifts slowly (~3 px/frame) over a slightly tilted plane
+``fast``      target swings ~120 px at up to ~17 px/frame (motion blur from the exposure)
+``tip``       the camera moves with the bending tip (``model.kinematics.tip_pose``)
+``blur``      fast motion with a long exposure: up to ~15 px of motion blur
+``specular``  tilted plane whose glints sit on the target and slide over it while it rocks
+``lighting``  the light gain steps and swings between 0.35 and 1.6
+``noise``     strong sensor noise (sigma 8 levels)
+``occlusion`` an instrument sweeps over the target, covers it completely, and withdraws
+``leave``     the view pans until the target leaves the field of view, then comes back
+``scale``     the tip approaches from 75 mm to 30 mm (target 2.5x larger)
+``rotation``  the target turns 180 deg in the image plane
+
+Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
+
+* **error**: distance (px) of a *valid* estimate from the true position of the selected point.
+* **visible** frames (point in front, inside the round field of view, not covered): correct when
+  the estimate is valid and within ``threshold_px``.
+* **not visible** frames (occluded by design, or outside the field of view): correct when the
+  tracker reports no valid estimate (valid=False) **or** a valid estimate within the threshold (a
+  tracker may legitimately infer a covered point from its surroundings); a valid estimate farther
+  away is wrong (a false lock).
+* ``tracked_fraction``: correct frames / all frames. ``median_px``, ``p95_px``: errors of valid
+  estimates on visible frames. ``delta_avg``: on visible frames, the fraction of frames with an
+  error below 4, 8, 16, 32, 64 px, averaged (TAP-Vid / STIR style; an invalid estimate counts as
+  a miss at every threshold). ``false_lock_fraction``: valid estimates farther than the threshold
+  / all frames. ``fps``: tracker frames per second on one core, timing only ``update`` calls;
+  ``fps_locked``: the same over the frames that arrive while the target is locked (the normal,
+  region-of-interest case), leaving out whole-frame re-acquisition while lost.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ..config import param, validate
+from ..model.camera import CameraParams
+from ..model.kinematics import tip_pose
+from .render import Frame, PlanarTarget, Renderer, RenderSettings, endoscope_camera, make_pose
+from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings
+
+__all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon"]
+
+SEQUENCES = ("slow", "fast", "tip", "blur", "specular", "lighting", "noise", "occlusion", "leave", "scale",
+             "rotation")
+THRESHOLDS_PX = (4.0, 8.0, 16.0, 32.0, 64.0)
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """What :func:`evaluate` renders and how it scores."""
+    frames: int = param(66, lo=10, hi=100000, doc="frames per sequence (66 = 3 s at 22 fps)")
+    sequences: tuple[str, ...] = param(SEQUENCES, choices=None, doc="sequences to run, from SEQUENCES")
+    tracker: str = param("feature", choices=("feature", "marker"), doc="tracker under test")
+    window_px: int = param(80, unit="px", lo=8, hi=1024, doc="side of the template window given to select()")
+    exposure_s: float = param(0.02, unit="s", lo=0.0, hi=1.0, doc="exposure time (motion blur)")
+    threshold_px: float = param(8.0, unit="px", lo=0.1, hi=1000.0, doc="largest error of a frame that counts as tracked")
+    distance_m: float = param(0.05, unit="m", lo=0.005, hi=1.0, doc="usual distance of the tissue from the tip")
+
+    def check(self, prefix: str = "") -> None:
+        from ..config import ConfigError
+        bad = [s for s in self.sequences if s not in SEQUENCES]
+        if bad:
+            raise ConfigError(f"{prefix}sequences: unknown {', '.join(bad)}; allowed: {', '.join(SEQUENCES)}")
+
+
+# ---------------------------------------------------------------------------------- scenes
+def instrument_polygon(tip_px, direction, width_px: float, length_px: float = 900.0) -> np.ndarray:
+    """Polygon (N, 2) px of an instrument shaft of ``width_px`` ending in a round tip at ``tip_px``
+    and reaching back along ``direction`` (from the tip towards where it enters the view)."""
+    d = np.asarray(direction, float)
+    d /= np.linalg.norm(d)
+    n = np.array([-d[1], d[0]])
+    tip = np.asarray(tip_px, float)
+    r = width_px / 2
+    back = tip + d * length_px
+    ang = np.linspace(0, np.pi, 12)
+    arc = tip[None] + r * (np.cos(ang)[:, None] * n[None] - np.sin(ang)[:, None] * d[None])
+    return np.vstack([back + n * r, arc, back - n * r])
+
+
+class _Scene:
+    """Poses of one sequence as functions of time (s)."""
+
+    def __init__(self, name: str, cfg: EvalSettings, cam: CameraParams, rng: np.random.Generator, duration: float):
+        self.name, self.cfg, self.cam, self.T = name, cfg, cam, duration
+        d = cfg.distance_m
+        self.p_sel = rng.uniform(-0.05, 0.05, 2)              # which tissue is the target
+        if cfg.tracker == "marker":
+            self.p_sel = np.zeros(2)                          # the marker sits at the plane centre
+        self.start = np.array([*rng.uniform(-0.004, 0.004, 2), d])  # target point in the camera frame
+        self.tilt = np.array([*rng.uniform(-0.25, 0.25, 2), rng.uniform(-np.pi, np.pi)])
+        self.phase = rng.uniform(0, 2 * np.pi, 2)
+        self.light_gain = 1.0
+        self.occluders: list = []
+        self.camera = np.eye(4)
+        if name == "specular":  # tilt so the glints (where the normal faces the camera) sit on the target
+            self.start = np.array([0.0, 0.0, 0.035])
+            self.tilt[:2] = 0.0
+        if name == "tip":
+            self.length, self.n_el = 0.04, 10
+            self.start = np.array([0.0, 0.0, self.length + d])
+
+    def target_pose(self, point_cam: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+        """Target pose that puts the selected plane point at ``point_cam`` (m, camera/world frame)."""
+        pose = make_pose((0, 0, 0), rotvec)
+        pose[:3, 3] = point_cam - pose[:3, :3] @ np.array([self.p_sel[0], self.p_sel[1], 0.0])
+        return pose
+
+    def at(self, t: float):
+        """(camera pose, target pose, light gain, occluders) at time t (s)."""
+        u = t / self.T                     # 0..1 over the sequence
+        w = 2 * np.pi * u
+        d = self.cfg.distance_m
+        pos = self.start.copy()
+        rv = self.tilt.copy()
+        cam_pose = self.camera
+        gain = 1.0
+        occ: list = []
+        name = self.name
+        if name in ("slow", "lighting", "noise"):
+            pos[:2] += 0.006 * np.sin(np.array([w, 2 * w]) + self.phase) * [1.0, 0.7]
+            if name == "lighting":
+                gain = 1.0 + 0.6 * math.sin(3 * w) if u < 0.5 else (0.35 if u < 0.75 else 1.6)
+        elif name in ("fast", "blur"):
+            amp = 0.02 if name == "fast" else 0.016
+            pos[:2] += amp * np.sin(np.array([1.5 * w, 0.75 * w]) + self.phase * [0, 1]) * [1.0, 0.5]
+        elif name == "tip":
+            phx = 0.35 * math.sin(w + self.phase[0])
+            phy = 0.25 * math.sin(2 * w + self.phase[1])
+            cam_pose = tip_pose(phx, phy, self.length, self.n_el)
+            pos = self.start.copy()
+        elif name == "specular":
+            rv = np.array([0.12 * math.sin(w), 0.12 * math.sin(2 * w + 1.0), self.tilt[2]])
+            pos[:2] += 0.002 * np.array([math.sin(w), math.cos(w)])
+        elif name == "occlusion":
+            pos[:2] += 0.002 * np.sin(np.array([w, 2 * w]) + self.phase)
+            # instrument from the lower right; its tip passes over the target and comes back
+            s = max(0.0, math.sin(np.pi * min(1.0, max(0.0, (u - 0.2) / 0.6))))  # 0 -> 1 -> 0
+            direc = np.array([0.8, 0.6])
+            tgt = np.array([self.cam.cx, self.cam.cy]) + pos[:2] / d * self.cam.fx
+            tip = tgt + direc / np.linalg.norm(direc) * (300.0 - 390.0 * s)
+            occ = [instrument_polygon(tip, direc, 130.0)]
+        elif name == "leave":
+            pos[0] += 0.085 * math.sin(np.pi * u) ** 2
+            pos[1] += 0.004 * math.sin(w)
+        elif name == "scale":
+            pos[2] = 0.075 - 0.045 * (0.5 - 0.5 * math.cos(np.pi * u))
+            pos[:2] += 0.002 * np.sin(np.array([w, w]) + self.phase)
+        elif name == "rotation":
+            rv = self.tilt.copy()
+            rv[2] += np.pi * u
+            pos[:2] += 0.002 * np.sin(np.array([w, w]) + self.phase)
+        return cam_pose, self.target_pose(pos, rv), gain, occ
+
+
+def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: int = 0,
+                    cam: CameraParams | None = None, render_settings: RenderSettings | None = None,
+                    target: PlanarTarget | None = None, renderer: Renderer | None = None) -> list[Frame]:
+    """Render sequence ``name`` (one of :data:`SEQUENCES`) with ground truth, deterministic in ``seed``."""
+    cfg = validate(settings or EvalSettings())
+    if name not in SEQUENCES:
+        raise ValueError(f"sequence {name!r}; allowed: {', '.join(SEQUENCES)}")
+    cam = cam or endoscope_camera()
+    rs = render_settings or RenderSettings()
+    if name == "noise":
+        rs = replace(rs, noise_sigma=max(rs.noise_sigma, 8.0))
+    exposure = cfg.exposure_s * (2.0 if name == "blur" else 1.0)
+    if renderer is None or name == "noise":
+        tgt = target if target is not None else (renderer.target if renderer is not None else None)
+        renderer = Renderer(cam, rs, tgt, seed=seed)
+    rng = np.random.default_rng([seed, SEQUENCES.index(name)])
+    renderer.reseed([seed, SEQUENCES.index(name), 1])
+    scene = _Scene(name, cfg, cam, rng, cfg.frames / cam.fps)
+    frames = []
+    for i in range(cfg.frames):
+        t = i / cam.fps
+        cp0, tp0, gain, occ = scene.at(t)
+        if exposure > 0:
+            cp1, tp1, _, _ = scene.at(t + exposure)
+            frames.append(renderer.render(cp0, tp0, camera_pose_end=cp1, target_pose_end=tp1, light_gain=gain,
+                                          occluders=occ, point_m=scene.p_sel))
+        else:
+            frames.append(renderer.render(cp0, tp0, light_gain=gain, occluders=occ, point_m=scene.p_sel))
+    return frames
+
+
+# --------------------------------------------------------------------------------- scoring
+def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict:
+    """Metrics (see module docstring) of tracker ``results`` (TrackResult per frame) against ``frames``."""
+    n = len(frames)
+    err = np.full(n, np.inf)
+    valid = np.zeros(n, bool)
+    vis = np.array([f.visible for f in frames])
+    for i, (f, r) in enumerate(zip(frames, results)):
+        valid[i] = bool(r.valid)
+        if r.valid:
+            err[i] = float(np.hypot(*(np.asarray(r.position_px) - f.truth_px)))
+    close = err <= threshold_px
+    correct = np.where(vis, valid & close, ~valid | close)
+    ev = err[vis & valid]
+    delta = [float(np.mean(err[vis] < t)) if vis.any() else float("nan") for t in THRESHOLDS_PX]
+    return {
+        "frames": int(n),
+        "visible_frames": int(vis.sum()),
+        "valid_frames": int(valid.sum()),
+        "median_px": float(np.median(ev)) if len(ev) else float("nan"),
+        "p95_px": float(np.percentile(ev, 95)) if len(ev) else float("nan"),
+        "tracked_fraction": float(np.mean(correct)) if n else float("nan"),
+        "delta_avg": float(np.mean(delta)),
+        "false_lock_fraction": float(np.mean(valid & ~close)) if n else float("nan"),
+    }
+
+
+def _make(cfg: EvalSettings, tracker_settings, cam: CameraParams) -> Tracker:
+    if cfg.tracker == "marker":
+        return MarkerTracker(tracker_settings if isinstance(tracker_settings, MarkerSettings) else None, cam)
+    return FeatureTracker(tracker_settings if isinstance(tracker_settings, TrackerSettings) else None)
+
+
+def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_settings=None,
+             render_settings: RenderSettings | None = None, cam: CameraParams | None = None,
+             progress: Callable[[str], None] | None = None) -> dict:
+    """Render every sequence of ``settings`` (deterministic in ``seed``), run the tracker, score it.
+
+    Returns a JSON-ready dict: ``overall`` (metrics pooled over all scored frames, plus ``fps``
+    and ``render_ms``), ``sequences`` (the same per sequence), ``settings`` and ``rules``.
+    The tracker is timed on one OpenCV thread (``fps`` counts only ``update`` calls).
+    """
+    cfg = validate(settings or EvalSettings())
+    cam = cam or endoscope_camera()
+    rs = render_settings or RenderSettings()
+    if cfg.tracker == "marker":
+        target = PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px)
+    else:
+        target = PlanarTarget.mucosa(seed=seed, texture_px=rs.texture_px)
+    renderer = Renderer(cam, rs, target, seed=seed)
+    threads = cv2.getNumThreads()
+    per_seq: dict[str, dict] = {}
+    all_frames: list[Frame] = []
+    all_results: list = []
+    t_track = t_lock = 0.0
+    n_locked = 0
+    t_render = 0.0
+    n_render = 0
+    try:
+        cv2.setNumThreads(1)
+        for name in cfg.sequences:
+            t0 = time.perf_counter()
+            frames = render_sequence(name, cfg, seed=seed, cam=cam, render_settings=rs, target=target,
+                                     renderer=renderer)
+            t_render += time.perf_counter() - t0
+            n_render += len(frames)
+            tracker = _make(cfg, tracker_settings, cam)
+            ok = tracker.select(frames[0].image, frames[0].truth_px, cfg.window_px)
+            results = []
+            dt = dt_lock = 0.0
+            n_lock = 0
+            for f in frames[1:]:
+                locked = not getattr(tracker, "lost", False)
+                t0 = time.perf_counter()
+                results.append(tracker.update(f.image))
+                t1 = time.perf_counter() - t0
+                dt += t1
+                if locked:
+                    dt_lock += t1
+                    n_lock += 1
+            m = score(frames[1:], results, cfg.threshold_px)
+            m["fps"] = (len(results) / dt) if dt > 0 else float("inf")
+            m["fps_locked"] = (n_lock / dt_lock) if dt_lock > 0 else float("nan")
+            m["selected"] = bool(ok)
+            per_seq[name] = m
+            all_frames += frames[1:]
+            all_results += results
+            t_track += dt
+            t_lock += dt_lock
+            n_locked += n_lock
+            if progress:
+                progress(f"{name}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
+                         f"fps {m['fps']:.0f}")
+    finally:
+        cv2.setNumThreads(threads)
+    overall = score(all_frames, all_results, cfg.threshold_px)
+    overall["fps"] = len(all_results) / t_track if t_track > 0 else float("inf")
+    overall["fps_locked"] = n_locked / t_lock if t_lock > 0 else float("nan")
+    overall["render_ms"] = 1e3 * t_render / max(n_render, 1)
+    cfg_d = asdict(cfg)
+    cfg_d["sequences"] = list(cfg.sequences)
+    return {"overall": overall, "sequences": per_seq, "settings": cfg_d, "seed": int(seed),
+            "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
+                     "the field of view): correct if not valid, or valid and error <= threshold"}

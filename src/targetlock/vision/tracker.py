@@ -1,0 +1,844 @@
+"""Target trackers: follow a selected image point from frame to frame.
+
+One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses the target,
+``update(frame)`` returns a :class:`TrackResult` per frame. Two implementations:
+
+:class:`FeatureTracker` (natural tissue texture)
+    Corner features in a window around the target are followed with pyramidal Lucas-Kanade
+    optical flow (forward-backward checked) **twice** per frame: from the last accepted frame
+    (the chain: short baseline, robust to fast appearance change) and from a **keyframe** (no
+    drift), the latter through the current region warped by the predicted keyframe -> frame
+    similarity, so scale and in-plane rotation are compensated inside every flow window. A
+    RANSAC affine rejects outlying features (highlights, instruments, blur); an iteratively
+    reweighted local affine of the inliers, weighted towards the target, maps the target point.
+    A frame is accepted only if both estimates agree (the chain X_{n-1} -> X_n composed with the
+    stored keyframe -> X_{n-1} must equal keyframe -> X_n: the report's consistency check) and
+    the target has not jumped away from its constant-velocity prediction (a false jump).
+    Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
+    well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
+    returns close to it and overrules a drifted chain. After ``max_misses`` consecutive rejected
+    frames the target is **lost**; it is then re-acquired locally (keyframe flow) or over the
+    whole frame by ORB matching against the keyframes, verified with RANSAC and by the
+    optical-flow keyframe check. In the normal case only a region of interest around the
+    prediction is processed (a ~200 px square for an 80 px window).
+
+:class:`MarkerTracker` (ArUco marker on the target)
+    ``cv2.aruco.ArucoDetector`` in a region around the prediction (whole frame when lost); the
+    target is a fixed point in marker coordinates (by default the marker centre).
+
+Preprocessing: grayscale of the region only; the round field of view's black border and the
+specular highlights are masked out of feature detection (and neutralised for the optical flow);
+the feature tracker normalises the region's brightness and contrast over tissue pixels, so a
+lighting change does not break brightness constancy.
+
+Units: pixels (x right, y down, origin top-left, pixel centres at integers), frames.
+"""
+from __future__ import annotations
+
+import abc
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..config import param, validate
+from ..model.camera import CameraParams, project, unproject
+from ..rig.base import Observation
+from .texture import ARUCO_DICTIONARIES
+
+__all__ = ["TrackResult", "Tracker", "TrackerSettings", "FeatureTracker", "MarkerSettings", "MarkerTracker",
+           "make_tracker", "to_observation", "field_of_view_mask"]
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What a tracker reports for one frame."""
+    position_px: np.ndarray
+    """Target position (px, x right, y down, image origin top-left). When ``valid`` is False it is
+    the last accepted/predicted position (still finite) unless ``lost``, where it is NaN."""
+    confidence: float
+    """In [0, 1]; 0 when not valid."""
+    valid: bool
+    """The position was measured on this frame and passed every consistency check."""
+    lost: bool
+    """The target has been missed for more than ``max_misses`` frames in a row (re-acquiring)."""
+
+
+def to_observation(result: TrackResult, capture_time: float, cx: float, cy: float, *,
+                   frame_index: int = -1, truth_px: np.ndarray | None = None) -> Observation:
+    """Loop-side :class:`~targetlock.rig.base.Observation` of a result: offset from (cx, cy) in px,
+    NaN when not valid; ``truth_px`` (twin only) becomes the ground-truth offset."""
+    centre = np.array([cx, cy], float)
+    off = np.asarray(result.position_px, float) - centre if result.valid else np.full(2, np.nan)
+    truth = None if truth_px is None else np.asarray(truth_px, float) - centre
+    return Observation(capture_time=float(capture_time), offset=off, valid=bool(result.valid),
+                       confidence=float(result.confidence) if result.valid else 0.0,
+                       frame_index=int(frame_index), truth=truth)
+
+
+class Tracker(abc.ABC):
+    """Common interface of all trackers."""
+
+    @abc.abstractmethod
+    def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
+        """Choose the target at ``point_px`` (x, y px) using a square template of side
+        ``window_px`` px around it. Returns False when the region holds too little structure
+        to track (the tracker is then lost)."""
+
+    @abc.abstractmethod
+    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+        """Track the target into ``frame_bgr`` (the next frame, BGR uint8)."""
+
+
+def field_of_view_mask(frame_bgr: np.ndarray, margin_px: int = 6, threshold: int = 12) -> np.ndarray:
+    """uint8 mask (255 inside) of the endoscope's round field of view, shrunk by ``margin_px``.
+
+    Finds the largest bright region and its enclosing circle; when the image has no dark border
+    (a plain camera), the whole image minus the margin is returned.
+    """
+    gray = cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY) if frame_bgr.ndim == 3 else frame_bgr
+    h, w = gray.shape
+    mask = np.zeros((h, w), np.uint8)
+    bright = (gray > threshold).astype(np.uint8)
+    corners = [bright[:8, :8], bright[:8, -8:], bright[-8:, :8], bright[-8:, -8:]]
+    if sum(float(c.mean()) for c in corners) / 4 > 0.5:  # no dark border: a rectangular image
+        mask[margin_px:h - margin_px, margin_px:w - margin_px] = 255
+        return mask
+    bright = cv2.morphologyEx(bright, cv2.MORPH_CLOSE, np.ones((15, 15), np.uint8))
+    contours, _ = cv2.findContours(bright, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return mask
+    (cx, cy), r = cv2.minEnclosingCircle(max(contours, key=cv2.contourArea))
+    cv2.circle(mask, (int(round(cx)), int(round(cy))), max(0, int(r) - margin_px), 255, -1)
+    return mask
+
+
+# ----------------------------------------------------------------------------- 2-D transforms
+def _h(t: np.ndarray) -> np.ndarray:
+    return np.vstack([t, [0.0, 0.0, 1.0]])
+
+
+def _apply(t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return np.asarray(pts, float) @ t[:2, :2].T + t[:2, 2]
+
+
+def _inv(t: np.ndarray) -> np.ndarray:
+    """Inverse of a 2-D affine transform given as 3x3."""
+    a, b, c, d, e, f = t[0, 0], t[0, 1], t[0, 2], t[1, 0], t[1, 1], t[1, 2]
+    det = a * e - b * d
+    ia, ib, id_, ie = e / det, -b / det, -d / det, a / det
+    return np.array([[ia, ib, -(ia * c + ib * f)], [id_, ie, -(id_ * c + ie * f)], [0.0, 0.0, 1.0]])
+
+
+def _translation(d: np.ndarray) -> np.ndarray:
+    return np.array([[1.0, 0.0, d[0]], [0.0, 1.0, d[1]], [0.0, 0.0, 1.0]])
+
+
+def _scale_angle(t: np.ndarray) -> tuple[float, float]:
+    """Scale and rotation (rad) of the similarity closest to the linear part of ``t``."""
+    a, b, c, d = t[0, 0], t[0, 1], t[1, 0], t[1, 1]
+    return math.sqrt(abs(a * d - b * c)), math.atan2(c - b, a + d)
+
+
+def _similarity(t: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The similarity (3x3) with the scale and rotation of ``t``'s linear part that maps
+    ``centre`` where ``t`` does (the best local stand-in for ``t`` around ``centre``)."""
+    sc, ang = _scale_angle(t)
+    c, s_ = sc * math.cos(ang), sc * math.sin(ang)
+    lin = np.array([[c, -s_], [s_, c]])
+    off = _apply(t, centre) - lin @ np.asarray(centre, float)
+    return np.array([[c, -s_, off[0]], [s_, c, off[1]], [0.0, 0.0, 1.0]])
+
+
+def _weighted_affine(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+    """Weighted least-squares 2-D affine (3x3) mapping src -> dst, or None if degenerate."""
+    x = np.column_stack([src, np.ones(len(src))])
+    xw = x * w[:, None]
+    a = xw.T @ x
+    if abs(np.linalg.det(a)) < 1e-9 * max(float(np.trace(a)), 1.0) ** 3:
+        return None
+    sol = np.linalg.solve(a, xw.T @ dst)
+    return np.vstack([sol.T, [0.0, 0.0, 1.0]])
+
+
+# ----------------------------------------------------------------------------- feature tracker
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Settings of :class:`FeatureTracker`."""
+    max_features: int = param(40, lo=4, hi=1000, doc="most corner features followed in the window")
+    feature_quality: float = param(0.005, lo=1e-5, hi=0.5, doc="goodFeaturesToTrack quality level (fraction of best corner)")
+    min_feature_distance_px: float = param(4.0, unit="px", lo=1.0, hi=100.0, doc="least distance between features")
+    lk_window_px: int = param(11, unit="px", lo=5, hi=61, doc="Lucas-Kanade window side (odd)")
+    lk_levels: int = param(3, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, frame-to-frame flow")
+    key_levels: int = param(2, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, keyframe flow (prediction-aligned)")
+    fb_max_px: float = param(1.0, unit="px", lo=0.01, hi=20.0, doc="largest forward-backward flow error of a kept feature")
+    ransac_px: float = param(2.0, unit="px", lo=0.1, hi=20.0, doc="RANSAC inlier distance")
+    min_inliers: int = param(8, lo=3, hi=500, doc="fewest RANSAC inliers for a valid motion estimate")
+    min_inlier_ratio: float = param(0.5, lo=0.0, hi=1.0,
+                                    doc="least fraction of the successfully followed features that are RANSAC inliers")
+    consistency_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
+                                  doc="largest disagreement of the chained and the keyframe estimate")
+    max_jump_px: float = param(30.0, unit="px", lo=1.0, hi=1000.0,
+                               doc="largest distance from the constant-velocity prediction (else: false jump)")
+    max_misses: int = param(4, lo=0, hi=10000, doc="consecutive rejected frames before the target is declared lost")
+    search_margin_px: float = param(40.0, unit="px", lo=0.0, hi=1000.0,
+                                    doc="margin of the region of interest around the window at the predicted position")
+    keyframes: int = param(6, lo=1, hi=64, doc="recent keyframes kept besides the selection (anchor) keyframe")
+    keyframe_scale: float = param(0.3, lo=0.01, hi=2.0, doc="scale range of a keyframe (relative); a new one is made at half of it")
+    keyframe_rotation_deg: float = param(40.0, unit="deg", lo=0.5, hi=90.0,
+                                         doc="rotation range of a keyframe; a new one is made at half of it")
+    highlight_margin_px: int = param(3, unit="px", lo=0, hi=50,
+                                     doc="highlights are grown by this margin before masking and filling")
+    saturation_level: int = param(190, lo=1, hi=255,
+                                  doc="8-bit level from which a pixel bright in gray and in blue counts as specular highlight")
+    reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
+    orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
+    reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
+    reacquire_min_inliers: int = param(12, lo=4, hi=1000, doc="fewest ORB RANSAC inliers to accept a re-acquisition")
+    reacquire_ratio: float = param(0.8, lo=0.1, hi=1.0, doc="Lowe ratio for ORB descriptor matches")
+
+    def check(self, prefix: str = "") -> None:
+        if self.lk_window_px % 2 == 0:
+            from ..config import ConfigError
+            raise ConfigError(f"{prefix}lk_window_px = {self.lk_window_px} must be odd")
+
+
+@dataclass(eq=False)
+class _View:
+    """Preprocessed region of one frame: normalised gray, local -> frame transform (3x3),
+    highlight mask, raw gray."""
+    gray: np.ndarray
+    to_frame: np.ndarray
+    sat: np.ndarray
+    raw: np.ndarray
+
+
+@dataclass(eq=False)
+class _Keyframe:
+    view: _View
+    pts: np.ndarray          # features (N, 2), frame coordinates of that frame (px)
+    target: np.ndarray       # target position in that frame (px)
+    from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
+    orb_pts: np.ndarray | None = None
+    orb_desc: np.ndarray | None = None
+
+
+class FeatureTracker(Tracker):
+    """Keyframe-checked optical-flow feature tracker with re-acquisition (see module docstring)."""
+
+    def __init__(self, settings: TrackerSettings | None = None) -> None:
+        self.settings = validate(settings or TrackerSettings())
+        s = self.settings
+        self._win = (s.lk_window_px, s.lk_window_px)
+        self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
+        self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
+                                   patchSize=31, fastThreshold=10)
+        self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
+                                       patchSize=31, fastThreshold=10)
+        self._clahe: dict = {}
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
+        self._dilate = np.ones((k, k), np.uint8)
+        self._fov: np.ndarray | None = None
+        self._hann: np.ndarray | None = None
+        self._anchor: _Keyframe | None = None
+        self.lost = True
+        self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
+                      "inconsistent": 0, "outside": 0, "corrections": 0}
+        self._chain_only = 0
+        self._lost_frames = 0
+        self._vel_known = False
+
+    # ------------------------------------------------------------------ views
+    def _highlights(self, bgr: np.ndarray, gray: np.ndarray) -> np.ndarray:
+        """Specular highlights (bool), grown by ``highlight_margin_px``: white pixels, i.e. bright
+        in gray and in blue, which reddish tissue never is."""
+        lvl = self.settings.saturation_level - 1
+        _, sat = cv2.threshold(gray, lvl, 255, cv2.THRESH_BINARY)
+        if bgr.ndim == 3:
+            _, blue = cv2.threshold(cv2.extractChannel(bgr, 0), lvl, 255, cv2.THRESH_BINARY)
+            sat = cv2.bitwise_and(sat, blue)
+        return cv2.dilate(sat, self._dilate) > 0
+
+    def _normalise(self, raw: np.ndarray, fov: np.ndarray, sat: np.ndarray, to_frame: np.ndarray) -> _View:
+        """Normalised gray (mean 128, fixed contrast, statistics over tissue only), neutral outside
+        the field of view and smoothly filled on highlights: the static black border and the
+        moving glints then add no edges that would pull the optical flow."""
+        tissue = fov.copy()
+        tissue[sat] = 0
+        mean, std = cv2.meanStdDev(raw, mask=tissue if tissue.any() else fov)
+        std = max(float(std[0, 0]), 2.0)
+        alpha = 40.0 / std
+        norm = cv2.convertScaleAbs(raw, alpha=alpha, beta=128.0 - alpha * float(mean[0, 0]))
+        norm[fov == 0] = 128
+        x, y, bw, bh = cv2.boundingRect(sat.view(np.uint8))
+        if bw > 0:  # fill highlights smoothly from their surroundings (normalised convolution)
+            hh, ww = sat.shape
+            x0, y0, x1, y1 = max(0, x - 6), max(0, y - 6), min(ww, x + bw + 6), min(hh, y + bh + 6)
+            sub, m = norm[y0:y1, x0:x1], sat[y0:y1, x0:x1]
+            keep = (~m).astype(np.float32)
+            num = cv2.blur(sub.astype(np.float32) * keep, (11, 11))
+            den = cv2.blur(keep, (11, 11))
+            fill = num / np.maximum(den, 1e-3)
+            fill[den < 1e-3] = 128.0
+            sub[m] = fill[m].astype(np.uint8)
+        return _View(norm, to_frame, sat, raw)
+
+    def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
+        """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
+        (pyramidal LK needs equal-sized images)."""
+        h, w = frame.shape[:2]
+        side = self._side
+        x0 = int(min(max(0, round(centre[0] - side / 2)), w - side))
+        y0 = int(min(max(0, round(centre[1] - side / 2)), h - side))
+        bgr = frame[y0:y0 + side, x0:x0 + side]
+        raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
+        return self._normalise(raw, self._fov[y0:y0 + side, x0:x0 + side], self._highlights(bgr, raw),
+                               _translation((x0, y0)))
+
+    def _warp(self, base: _View, local_to_frame: np.ndarray) -> _View:
+        """The preprocessed region ``base`` resampled through ``local_to_frame`` (3x3), so it lines
+        up with a keyframe region: the optical flow then only has to absorb the prediction error,
+        and scale/rotation are compensated within every flow window."""
+        m = (_inv(base.to_frame) @ local_to_frame)[:2]
+        size = (self._side, self._side)
+        inv = cv2.WARP_INVERSE_MAP
+        raw = cv2.warpAffine(base.raw, m, size, flags=cv2.INTER_LINEAR | inv, borderMode=cv2.BORDER_REPLICATE)
+        sat = cv2.warpAffine(base.sat.view(np.uint8), m, size, flags=cv2.INTER_NEAREST | inv,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        fov = cv2.warpAffine(self._fov, local_to_frame[:2], size, flags=cv2.INTER_NEAREST | inv,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return self._normalise(raw, fov, sat, local_to_frame.copy())
+
+    def _features(self, view: _View, centre: np.ndarray, half: float) -> np.ndarray:
+        """Corners (frame px) within a square of half-side ``half`` px around ``centre`` in a crop view."""
+        s = self.settings
+        h, w = view.gray.shape
+        off = view.to_frame[:2, 2]
+        c = centre - off
+        x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
+        x1, y1 = int(min(w, c[0] + half + 1)), int(min(h, c[1] + half + 1))
+        if x1 <= x0 or y1 <= y0:
+            return np.zeros((0, 2), np.float32)
+        mask = np.zeros((h, w), np.uint8)
+        ox, oy = int(off[0]), int(off[1])
+        mask[y0:y1, x0:x1] = self._fov[oy + y0:oy + y1, ox + x0:ox + x1]
+        mask[view.sat] = 0
+        pts = cv2.goodFeaturesToTrack(view.gray, s.max_features, s.feature_quality, s.min_feature_distance_px,
+                                      mask=mask, blockSize=5)
+        if pts is None:
+            return np.zeros((0, 2), np.float32)
+        return pts.reshape(-1, 2) + off.astype(np.float32)
+
+    # ------------------------------------------------------------- estimation
+    def _flow(self, a: _View, b: _View, pts: np.ndarray, guess: np.ndarray, levels: int):
+        """Pyramidal LK of points ``pts`` (frame px of view a) into view b, starting from ``guess``
+        (frame px of view b), with a forward-backward check; points that end on a highlight are
+        dropped. Returns (src, dst) frame coordinates of the kept points."""
+        if len(pts) == 0:
+            return pts, pts
+        p0 = _apply(_inv(a.to_frame), pts).astype(np.float32).reshape(-1, 1, 2)
+        g = _apply(_inv(b.to_frame), guess).astype(np.float32).reshape(-1, 1, 2)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(a.gray, b.gray, p0, g, winSize=self._win, maxLevel=levels,
+                                             criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        back = p1 - (g - p0)  # backward search starts from the predicted motion, not from the answer
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(b.gray, a.gray, p1, back, winSize=self._win, maxLevel=levels,
+                                              criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.settings.fb_max_px)
+        q = p1.reshape(-1, 2)
+        h, w = b.gray.shape
+        ok &= (q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1)
+        if ok.any():  # the flow window touched a highlight in either image: biased, drop it
+            idx = np.flatnonzero(ok)
+            qi = np.round(q[ok]).astype(int)
+            pi = np.clip(np.round(p0.reshape(-1, 2)[ok]).astype(int), 0, [w - 1, h - 1])
+            ok[idx[b.sat[qi[:, 1], qi[:, 0]] | a.sat[pi[:, 1], pi[:, 0]]]] = False
+        return pts[ok], _apply(b.to_frame, q[ok])
+
+    def _motion(self, src: np.ndarray, dst: np.ndarray, n_tracked: int, centre: np.ndarray):
+        """RANSAC affine (lens distortion and perspective make the local motion anisotropic), then
+        a least-squares affine of the inliers weighted towards ``centre``. Returns (affine 3x3,
+        closest similarity 3x3, inlier mask, inlier count) or None."""
+        s = self.settings
+        if len(src) < max(s.min_inliers, 3):
+            return None
+        aff0, inl = cv2.estimateAffine2D(src.astype(np.float32), dst.astype(np.float32), method=cv2.RANSAC,
+                                         ransacReprojThreshold=s.ransac_px, maxIters=300, confidence=0.995,
+                                         refineIters=10)
+        if aff0 is None:
+            return None
+        inl = inl.ravel().astype(bool)
+        n_in = int(inl.sum())
+        if n_in < s.min_inliers or n_in < s.min_inlier_ratio * len(src):
+            return None
+        half = 0.5 * self._window
+        si, di = src[inl].astype(float), dst[inl].astype(float)
+        w0 = 1.0 / (1.0 + np.sum((si - centre) ** 2, axis=1) / (half * half))
+        aff = _h(aff0)
+        for _ in range(2):  # iteratively reweighted: Cauchy weights on the residuals (0.5 px scale)
+            r2 = np.sum((_apply(aff, si) - di) ** 2, axis=1)
+            fit = _weighted_affine(si, di, w0 / (1.0 + r2 / 0.25))
+            if fit is None:
+                break
+            aff = fit
+        if aff is None or np.abs(aff[:2, :2] - aff0[:, :2]).max() > 0.25:  # no blow-up from few points
+            aff = _h(aff0)
+        return aff, _similarity(aff, centre), inl, n_in
+
+    def _orb_prep(self, frame: np.ndarray, roi=None) -> tuple[np.ndarray, np.ndarray]:
+        """Gray for ORB (local contrast equalised with tiles of ~90 x 72 px, slightly smoothed:
+        repeatable keypoints on low-contrast tissue) and the detection mask (field of view, no
+        highlights), of the whole frame or of ``roi`` = (x0, y0, x1, y1)."""
+        x0, y0, x1, y1 = roi if roi is not None else (0, 0, frame.shape[1], frame.shape[0])
+        bgr = frame[y0:y1, x0:x1]
+        gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
+        mask = self._fov[y0:y1, x0:x1].copy()
+        if bgr.ndim == 3:
+            mask[self._highlights(bgr, gray)] = 0
+        grid = (max(1, round((x1 - x0) / 90)), max(1, round((y1 - y0) / 72)))
+        clahe = self._clahe.get(grid)
+        if clahe is None:
+            clahe = self._clahe[grid] = cv2.createCLAHE(clipLimit=2.0, tileGridSize=grid)
+        return cv2.GaussianBlur(clahe.apply(gray), (0, 0), 1.0), mask
+
+    def _orb_describe(self, frame: np.ndarray, centre: np.ndarray):
+        """ORB keypoints (frame px) and descriptors within ``window`` px of ``centre``."""
+        half = self._window + 32
+        h, w = frame.shape[:2]
+        x0, y0 = int(max(0, centre[0] - half)), int(max(0, centre[1] - half))
+        x1, y1 = int(min(w, centre[0] + half + 1)), int(min(h, centre[1] + half + 1))
+        gray, mask = self._orb_prep(frame, (x0, y0, x1, y1))
+        kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
+        if desc is None or len(kps) < 4:
+            return None, None
+        pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
+        near = np.max(np.abs(pts - centre), axis=1) <= self._window
+        return pts[near], desc[near]
+
+    def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
+                       from_anchor: np.ndarray) -> _Keyframe | None:
+        pts = self._features(view, target, 0.5 * self._window)
+        if len(pts) < self.settings.min_inliers:
+            return None
+        kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor)
+        if self.settings.reacquire:
+            kf.orb_pts, kf.orb_desc = self._orb_describe(frame, target)
+        self.stats["keyframes"] += 1
+        return kf
+
+    # -------------------------------------------------------------------- API
+    def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
+        s = self.settings
+        if not 8 <= int(window_px) <= 2048:
+            raise ValueError(f"window_px = {window_px}; allowed: [8, 2048] px")
+        self._window = float(window_px)
+        self._fov = field_of_view_mask(frame_bgr, margin_px=s.lk_window_px // 2 + 2)
+        k = max(3, int(self._window // 2) | 1)
+        self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
+        p = np.asarray(point_px, float).reshape(2)
+        self._pos = p.copy()
+        self._vel = np.zeros(2)
+        self._vel_known = False
+        self._misses = 0
+        self.lost = True
+        self._anchor = None
+        self._recent: deque[_Keyframe] = deque(maxlen=s.keyframes)
+        self._side = int(min(frame_bgr.shape[0], frame_bgr.shape[1],
+                             math.ceil(1.3 * self._window + 2 * (s.search_margin_px + s.lk_window_px // 2 + 1))))
+        self._hann = None
+        view = self._crop(frame_bgr, p)
+        kf = self._make_keyframe(frame_bgr, view, p, np.eye(3))
+        if kf is None:
+            return False
+        self._anchor = self._key = kf
+        self._from_anchor = np.eye(3)   # anchor frame -> last accepted frame (similarity)
+        self._prev = view               # last accepted frame's region ...
+        self._prev_pts = kf.pts.copy()  # ... and the features to follow from it
+        self.lost = False
+        return True
+
+    def _close(self, kf: _Keyframe, anchor_to_pred: np.ndarray, frac: float) -> bool:
+        """The predicted view differs from keyframe ``kf`` by less than ``frac`` of the renewal limits."""
+        sc, ang = _scale_angle(anchor_to_pred @ _inv(kf.from_anchor))
+        return (abs(math.log(sc)) < math.log1p(frac * self.settings.keyframe_scale) and
+                abs(math.degrees(ang)) < frac * self.settings.keyframe_rotation_deg)
+
+    def _keyframe_candidates(self, anchor_to_pred: np.ndarray) -> list[tuple[_Keyframe, int]]:
+        """(keyframe, fewest inliers to accept it) to try in order: every few frames the anchor
+        (if the view is back close to it: no accumulated error), then the current keyframe, then
+        the most recent other keyframe close to the predicted view."""
+        out = []
+        if self._key is not self._anchor and self.stats["frames"] % 5 == 0 and \
+                self._close(self._anchor, anchor_to_pred, 0.5):
+            out.append((self._anchor, 2 * self.settings.min_inliers))
+        out.append((self._key, 0))
+        for kf in reversed(self._recent):
+            if kf is not self._key and self._close(kf, anchor_to_pred, 0.7):
+                out.append((kf, 0))
+                break
+        return out
+
+    def _in_view(self, p: np.ndarray, inner: bool = False) -> bool:
+        """``p`` (px) lies inside the (shrunk) field of view; ``inner``: a quarter window further in."""
+        x, y = int(round(p[0])), int(round(p[1]))
+        m = self._fov_inner if inner else self._fov
+        h, w = m.shape
+        return 0 <= x < w and 0 <= y < h and m[y, x] > 0
+
+    def _coarse_shift(self, frame: np.ndarray) -> np.ndarray | None:
+        """Translation (px) of the last accepted region into ``frame``, by phase correlation."""
+        off = self._prev.to_frame[:2, 2]
+        same = self._crop(frame, off + self._side / 2)
+        if np.any(same.to_frame[:2, 2] != off):
+            return None
+        if self._hann is None:
+            self._hann = cv2.createHanningWindow((self._side, self._side), cv2.CV_32F)
+        # The window also fades out smoothly towards the (static) border of the field of view,
+        # which would otherwise pull the correlation peak to zero shift.
+        x0, y0 = int(off[0]), int(off[1])
+        fov = self._fov[y0:y0 + self._side, x0:x0 + self._side].astype(np.float32)
+        win = self._hann * cv2.blur(cv2.erode(fov, np.ones((9, 9), np.uint8)), (17, 17)) * (1.0 / 255.0)
+        def detail(g):  # high-pass: the static light fall-off would also peak at zero shift
+            f = g.astype(np.float32)
+            return f - cv2.GaussianBlur(f, (0, 0), 6.0)
+        (dx, dy), response = cv2.phaseCorrelate(detail(self._prev.gray), detail(same.gray), win)
+        if response < 0.05 or math.hypot(dx, dy) > self._side / 3:
+            return None
+        return np.array([dx, dy])
+
+    def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
+        """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
+        wv = self._warp(base, key_to_pred @ kf.view.to_frame)
+        ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
+        return self._motion(ksrc, kdst, len(kf.pts), kf.target), ksrc, kdst
+
+    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+        s = self.settings
+        self.stats["frames"] += 1
+        if self._anchor is None:
+            return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        if self.lost:
+            self._lost_frames += 1
+            res = self._track(frame_bgr, relock=True)
+            if res is None and s.reacquire and self._lost_frames % s.reacquire_every == 1 % s.reacquire_every:
+                res = self._reacquire(frame_bgr)
+            if res is None:
+                return TrackResult(np.full(2, np.nan), 0.0, False, True)
+            return res
+        res = self._track(frame_bgr, relock=False)
+        if res is not None:
+            return res
+        self._misses += 1
+        self.stats["misses"] += 1
+        self._vel[:] = 0.0
+        self._vel_known = False
+        if self._misses > s.max_misses:
+            self.lost = True
+            self._lost_frames = 0
+            return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        return TrackResult(self._pos.copy(), 0.0, False, False)
+
+    def _track(self, frame: np.ndarray, relock: bool) -> TrackResult | None:
+        """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
+        target is lost and this is a cheap local attempt (keyframe evidence required)."""
+        s = self.settings
+        pred = self._pos + self._vel
+        tried_shift = False
+        if not relock and not self._vel_known:
+            # No velocity yet (just selected or re-acquired): predict by phase correlation.
+            shift = self._coarse_shift(frame)
+            tried_shift = True
+            if shift is not None:
+                pred = self._pos + shift
+        view = self._crop(frame, pred)
+        # 1) chain: last accepted frame -> this frame
+        src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + (pred - self._pos), s.lk_levels)
+        chain = self._motion(src, dst, len(self._prev_pts), self._pos)
+        if chain is None and not relock:
+            # Unexpected motion: a second attempt seeded by the coarse shift from phase correlation
+            # of the same region in both frames (or, if that seeded the first one, by no motion).
+            shift = np.zeros(2) if tried_shift else self._coarse_shift(frame)
+            if shift is not None and np.hypot(*(self._pos + shift - pred)) > 2.0:
+                pred = self._pos + shift
+                view = self._crop(frame, pred)
+                src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
+                chain = self._motion(src, dst, len(self._prev_pts), self._pos)
+        step = chain[1] if chain is not None else _translation(pred - self._pos)
+        anchor_to_pred = step @ self._from_anchor
+        # 2) keyframe -> this frame, predicted through the chain
+        key = None
+        for kf, least in self._keyframe_candidates(anchor_to_pred):
+            km, ksrc, kdst = self._match_keyframe(view, kf, anchor_to_pred @ _inv(kf.from_anchor))
+            if km is not None and km[3] >= least:
+                key = (kf, km, kdst)
+                break
+        est_chain = _apply(chain[0], self._pos) if chain is not None else None
+        if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
+            key = None  # a keyframe alone, on a few features only: not trusted
+        if key is not None:
+            kf, (aff, sim, inl, n_in), kdst = key
+            est = _apply(aff, kf.target)
+            conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
+            if est_chain is not None:
+                if np.hypot(*(est - est_chain)) > s.consistency_px:
+                    if kf is not self._anchor or n_in < 2 * s.min_inliers:
+                        self.stats["inconsistent"] += 1  # X_n-1 -> X_n disagrees with keyframe -> X_n
+                        return None
+                    # A strong match of the selection itself overrules the chain: drift corrected.
+                    self.stats["corrections"] += 1
+                    est_chain = est
+                # Both agree: average them by their inlier counts. The keyframe keeps the chain
+                # from drifting; the chain smooths the keyframe estimate when few features match.
+                n_c = chain[3]
+                est = (n_in * est + n_c * est_chain) / (n_in + n_c)
+            new_from_anchor = sim @ kf.from_anchor
+            next_pts = kdst[inl]
+        elif (chain is not None and not relock and self._misses == 0 and self._chain_only < 3
+              and chain[3] >= 2 * s.min_inliers):
+            aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
+            est = est_chain
+            conf = 0.5 * min(1.0, n_in / max(len(self._prev_pts), 1) / 0.8)
+            new_from_anchor = sim @ self._from_anchor
+            next_pts = dst[inl]
+        else:
+            return None
+        if np.hypot(*(est - pred)) > s.max_jump_px * (3.0 if relock else 1.0):
+            self.stats["false_jumps"] += 1  # moved too far from the prediction: not believed
+            return None
+        if not self._in_view(est):
+            self.stats["outside"] += 1  # left the field of view: cannot be measured any more
+            return None
+        # Accept.
+        self._chain_only = 0 if key is not None else self._chain_only + 1
+        self._vel_known = not relock and self._misses == 0
+        self._vel = (est - self._pos) if self._vel_known else np.zeros(2)
+        self._pos = est
+        self._misses = 0
+        self.lost = False
+        self._from_anchor = new_from_anchor
+        self._prev = view
+        if len(next_pts) < s.max_features // 2:
+            extra = self._features(view, est, 0.5 * self._window)
+            next_pts = np.vstack([next_pts, extra]) if len(extra) else next_pts
+        self._prev_pts = next_pts.astype(np.float32)
+        # A new keyframe when the one used drifted in scale/rotation or matched poorly.
+        renew = key is None
+        if key is not None:
+            sc, ang = _scale_angle(sim)
+            renew = (abs(math.log(sc)) > math.log1p(0.5 * s.keyframe_scale) or
+                     abs(math.degrees(ang)) > 0.5 * s.keyframe_rotation_deg or
+                     n_in < max(2 * s.min_inliers, 0.4 * len(kf.pts)))
+            self._key = kf
+        # Only from a well-supported estimate: features on all sides of the target (no
+        # extrapolation, which drifts at the edge of the view).
+        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
+        supported = bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+        # Renew only when chain and keyframe both support this frame (or the chain strongly).
+        strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
+        if renew and not relock and supported and strong:
+            kf_new = self._make_keyframe(frame, view, est, new_from_anchor)
+            if kf_new is not None:
+                self._recent.append(kf_new)
+                self._key = kf_new
+        if relock:
+            self.stats["reacquisitions"] += 1
+        return TrackResult(est.copy(), float(conf), True, False)
+
+    def _reacquire(self, frame: np.ndarray) -> TrackResult | None:
+        """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
+        keyframe check seeded with the ORB transform."""
+        s = self.settings
+        gray, mask = self._orb_prep(frame)
+        kps, desc = self._orb.detectAndCompute(gray, mask)
+        if desc is None or len(kps) < s.reacquire_min_inliers:
+            return None
+        pts = np.array([k.pt for k in kps], np.float32)
+        # One matching pass for the anchor and the most recent keyframe together.
+        kfs = [k for k in [self._anchor, *list(self._recent)[-1:]]
+               if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
+        if not kfs:
+            return None
+        owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
+        query = np.concatenate([k.orb_desc for k in kfs])
+        qpts = np.concatenate([k.orb_pts for k in kfs])
+        matches = self._matcher.knnMatch(query, desc, k=2)
+        good = np.array([(m[0].queryIdx, m[0].trainIdx) for m in matches
+                         if len(m) == 2 and m[0].distance < s.reacquire_ratio * m[1].distance], int).reshape(-1, 2)
+        best = None
+        for i, kf in enumerate(kfs):
+            g = good[owner[good[:, 0]] == i] if len(good) else good
+            if len(g) < s.reacquire_min_inliers:
+                continue
+            sim, inl = cv2.estimateAffinePartial2D(qpts[g[:, 0]], pts[g[:, 1]], method=cv2.RANSAC,
+                                                   ransacReprojThreshold=3.0, maxIters=1000, confidence=0.995)
+            if sim is None:
+                continue
+            n_in = int(inl.sum())
+            if n_in >= s.reacquire_min_inliers and (best is None or n_in > best[0]):
+                best = (n_in, kf, _h(sim))
+        if best is None:
+            return None
+        _, kf, key_to_cur = best
+        est0 = _apply(key_to_cur, kf.target)
+        base = self._crop(frame, est0)
+        km, ksrc, kdst = self._match_keyframe(base, kf, key_to_cur)
+        if km is None or km[3] < 1.5 * s.min_inliers:
+            return None
+        aff, sim, inl, n_in = km
+        est = _apply(aff, kf.target)
+        if np.hypot(*(est - est0)) > 6.0:
+            return None
+        self._pos = est
+        self._vel = np.zeros(2)
+        self._vel_known = False
+        self._misses = 0
+        self.lost = False
+        self._from_anchor = sim @ kf.from_anchor
+        self._key = kf
+        self._prev = base
+        self._prev_pts = kdst[inl].astype(np.float32)
+        self.stats["reacquisitions"] += 1
+        conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
+        return TrackResult(est.copy(), float(conf), True, False)
+
+
+# ------------------------------------------------------------------------------ marker tracker
+@dataclass(frozen=True)
+class MarkerSettings:
+    """Settings of :class:`MarkerTracker`."""
+    dictionary: str = param("DICT_4X4_50", choices=ARUCO_DICTIONARIES, doc="ArUco dictionary of the marker")
+    marker_id: int = param(-1, lo=-1, hi=10000, doc="marker to follow; -1: the one at the selected point")
+    max_misses: int = param(4, lo=0, hi=10000, doc="consecutive frames without the marker before it is lost")
+    search_margin_px: float = param(40.0, unit="px", lo=0.0, hi=2000.0, doc="margin of the search region around the marker")
+    max_jump_px: float = param(60.0, unit="px", lo=1.0, hi=2000.0, doc="largest distance from the prediction")
+
+
+class MarkerTracker(Tracker):
+    """ArUco marker tracker; the target is a fixed point in marker coordinates."""
+
+    # Marker coordinates: side = 1, centre (0, 0), x right, y down; corners in ArUco order.
+    _UNIT = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]], np.float32)
+
+    def __init__(self, settings: MarkerSettings | None = None, camera: CameraParams | None = None) -> None:
+        """``camera``: intrinsics with lens distortion; when given, the marker's corners are
+        undistorted before the marker-to-image homography is fitted, so a point inside a large
+        marker near the edge of a distorting lens is placed correctly (else: plain homography)."""
+        self.settings = validate(settings or MarkerSettings())
+        self.camera = camera
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        params.cornerRefinementWinSize = 4
+        params.cornerRefinementMinAccuracy = 0.01
+        params.cornerRefinementMaxIterations = 50
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.settings.dictionary))
+        self._det = cv2.aruco.ArucoDetector(d, params)
+        self._id = None
+        self._pos = np.full(2, np.nan)
+        self._vel = np.zeros(2)
+        self._size = 0.0
+        self._misses = 0
+        self.lost = True
+
+    def _detect(self, frame: np.ndarray, roi=None) -> dict[int, np.ndarray]:
+        if roi is None:
+            crop, off = frame, np.zeros(2)
+        else:
+            x0, y0, x1, y1 = roi
+            crop, off = frame[y0:y1, x0:x1], np.array([x0, y0], float)
+        gray = cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY) if crop.ndim == 3 else crop
+        corners, ids, _ = self._det.detectMarkers(gray)
+        if ids is None:
+            return {}
+        return {int(i): c.reshape(4, 2).astype(float) + off for i, c in zip(ids.ravel(), corners)}
+
+    def _undistorted(self, px: np.ndarray) -> np.ndarray:
+        """Pixels -> undistorted pinhole pixels (identity without a camera)."""
+        cam = self.camera
+        if cam is None or not (cam.k1 or cam.k2):
+            return np.asarray(px, float)
+        ray = unproject(np.asarray(px, float), 1.0, cam)
+        return project(ray, cam, distort=False)
+
+    def _distorted(self, px: np.ndarray) -> np.ndarray:
+        cam = self.camera
+        if cam is None or not (cam.k1 or cam.k2):
+            return np.asarray(px, float)
+        ray = unproject(np.asarray(px, float), 1.0, cam, distort=False)
+        return project(ray, cam)
+
+    def _point(self, corners: np.ndarray) -> np.ndarray:
+        h = cv2.getPerspectiveTransform(self._UNIT, self._undistorted(corners).astype(np.float32))
+        p = cv2.perspectiveTransform(self._offset.reshape(1, 1, 2), h).reshape(2).astype(float)
+        return self._distorted(p)
+
+    def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
+        p = np.asarray(point_px, float).reshape(2)
+        found = self._detect(frame_bgr)
+        self.lost = True
+        if self.settings.marker_id >= 0:
+            found = {k: v for k, v in found.items() if k == self.settings.marker_id}
+        if not found:
+            return False
+        # The marker containing the point, else the nearest centre within the window.
+        def dist(c):
+            inside = cv2.pointPolygonTest(c.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])), True)
+            return -inside if inside >= 0 else np.hypot(*(c.mean(0) - p))
+        mid, corners = min(found.items(), key=lambda kv: dist(kv[1]))
+        if cv2.pointPolygonTest(corners.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])), False) < 0 \
+                and np.hypot(*(corners.mean(0) - p)) > window_px:
+            return False
+        hinv = cv2.getPerspectiveTransform(self._undistorted(corners).astype(np.float32), self._UNIT)
+        self._offset = cv2.perspectiveTransform(self._undistorted(p).reshape(1, 1, 2).astype(np.float32),
+                                                hinv).reshape(2)
+        self._id = mid
+        self._pos = p.copy()
+        self._vel = np.zeros(2)
+        self._size = float(np.sqrt(cv2.contourArea(corners.astype(np.float32))))
+        self._misses = 0
+        self.lost = False
+        return True
+
+    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+        s = self.settings
+        if self._id is None:
+            return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        corners = None
+        if not self.lost:
+            pred = self._pos + self._vel
+            half = self._size + s.search_margin_px + float(np.hypot(*self._vel))
+            h, w = frame_bgr.shape[:2]
+            roi = (int(max(0, pred[0] - half)), int(max(0, pred[1] - half)),
+                   int(min(w, pred[0] + half + 1)), int(min(h, pred[1] + half + 1)))
+            if roi[2] - roi[0] > 16 and roi[3] - roi[1] > 16:
+                corners = self._detect(frame_bgr, roi).get(self._id)
+        if corners is None:
+            corners = self._detect(frame_bgr).get(self._id)
+        if corners is not None:
+            est = self._point(corners)
+            pred = self._pos + self._vel
+            if self.lost or np.hypot(*(est - pred)) <= s.max_jump_px:
+                self._vel = est - self._pos if (not self.lost and self._misses == 0) else np.zeros(2)
+                self._pos = est
+                self._size = float(np.sqrt(cv2.contourArea(corners.astype(np.float32))))
+                self._misses = 0
+                self.lost = False
+                return TrackResult(est.copy(), 1.0, True, False)
+        self._misses += 1
+        self._vel[:] = 0.0
+        if self._misses > s.max_misses:
+            self.lost = True
+            return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        return TrackResult(self._pos.copy(), 0.0, False, False)
+
+
+def make_tracker(kind: str = "feature", settings=None, camera: CameraParams | None = None) -> Tracker:
+    """A tracker by name: ``"feature"`` (:class:`FeatureTracker`) or ``"marker"`` (:class:`MarkerTracker`,
+    which uses ``camera``'s lens distortion when given)."""
+    if kind == "feature":
+        return FeatureTracker(settings)
+    if kind == "marker":
+        return MarkerTracker(settings, camera)
+    raise ValueError(f"tracker kind = {kind!r}; allowed: 'feature', 'marker'")

@@ -1,0 +1,70 @@
+"""Evaluation: scoring rules and a short end-to-end run."""
+import json
+
+import numpy as np
+import pytest
+
+from targetlock.config import ConfigError, validate
+from targetlock.vision import EvalSettings, Frame, TrackResult, evaluate, render_sequence, score
+
+
+def _frame(truth, visible=True):
+    return Frame(np.zeros((4, 4, 3), np.uint8), np.array(truth, float), visible)
+
+
+def _res(pos, valid=True):
+    return TrackResult(np.array(pos, float), 1.0 if valid else 0.0, valid, False)
+
+
+def test_scoring_rules():
+    frames = [_frame((10, 10)), _frame((10, 10)), _frame((10, 10)),             # visible
+              _frame((50, 50), False), _frame((50, 50), False), _frame((50, 50), False)]  # occluded
+    results = [_res((10.5, 10)),           # visible, 0.5 px: correct
+               _res((30, 10)),             # visible, 20 px: wrong (false lock)
+               _res((10, 10), False),      # visible, no estimate: wrong
+               _res((0, 0), False),        # occluded, reports nothing: correct
+               _res((52, 50)),             # occluded, inferred within 8 px: correct
+               _res((90, 50))]             # occluded, valid but far: wrong (false lock)
+    m = score(frames, results, threshold_px=8.0)
+    assert m["tracked_fraction"] == pytest.approx(3 / 6)
+    assert m["false_lock_fraction"] == pytest.approx(2 / 6)
+    assert m["median_px"] == pytest.approx(10.25)          # errors of valid visible estimates: 0.5, 20
+    # delta_avg over visible frames (4, 8, 16, 32, 64 px): [1/3, 1/3, 1/3, 2/3, 2/3]
+    assert m["delta_avg"] == pytest.approx((3 * (1 / 3) + 2 * (2 / 3)) / 5)
+    assert m["visible_frames"] == 3 and m["valid_frames"] == 4
+
+
+def test_eval_settings_are_validated():
+    with pytest.raises(ConfigError, match="sequences"):
+        validate(EvalSettings(sequences=("slow", "nonsense")))
+    with pytest.raises(ConfigError, match="tracker"):
+        validate(EvalSettings(tracker="magic"))
+
+
+def test_sequences_are_deterministic():
+    cfg = EvalSettings(frames=10)
+    a = render_sequence("occlusion", cfg, seed=2)
+    b = render_sequence("occlusion", cfg, seed=2)
+    assert all(np.array_equal(x.image, y.image) for x, y in zip(a, b))
+    assert all(np.array_equal(x.truth_px, y.truth_px) for x, y in zip(a, b))
+
+
+def test_evaluate_short_run_is_json_ready_and_good():
+    cfg = EvalSettings(frames=24, sequences=("slow", "occlusion", "rotation"))
+    out = evaluate(cfg, seed=1)
+    json.dumps(out)                                          # CLI --json
+    o = out["overall"]
+    assert set(out["sequences"]) == {"slow", "occlusion", "rotation"}
+    assert o["frames"] == 3 * 23
+    assert o["median_px"] < 1.0 and o["tracked_fraction"] >= 0.95 and o["false_lock_fraction"] == 0.0
+    assert o["fps"] > 50 and o["render_ms"] > 0
+    for m in out["sequences"].values():
+        assert m["selected"] and 0.0 <= m["delta_avg"] <= 1.0
+
+
+def test_occlusion_sequence_really_occludes():
+    frames = render_sequence("occlusion", EvalSettings(), seed=0)
+    hidden = [f.occluded for f in frames]
+    assert 5 <= sum(hidden) <= 30 and not hidden[0] and not hidden[-1]
+    leave = render_sequence("leave", EvalSettings(), seed=0)
+    assert any(not f.visible and not f.occluded for f in leave) and leave[-1].visible

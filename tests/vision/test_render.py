@@ -1,0 +1,163 @@
+"""Renderer: geometry against model.camera.project, field of view, light, blur, noise, occluders."""
+import math
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from targetlock.config import ConfigError, validate
+from targetlock.model.camera import project, world_to_camera
+from targetlock.vision import (PlanarTarget, Renderer, RenderSettings, add_dot, aruco_texture, make_pose,
+                               mucosa_texture)
+from targetlock.vision.texture import with_height
+
+SIZE = (0.2, 0.2)
+DOTS = [(0.0, 0.0), (0.012, -0.008), (-0.02, 0.015), (0.03, 0.02), (-0.025, -0.02)]
+
+
+def _centroid(img: np.ndarray, guess: np.ndarray, half: int = 8) -> np.ndarray:
+    """Background-subtracted intensity centroid of a bright dot near ``guess`` (px)."""
+    g = img[..., 1].astype(float)
+    x0, y0 = int(round(guess[0])) - half, int(round(guess[1])) - half
+    w = g[y0:y0 + 2 * half + 1, x0:x0 + 2 * half + 1]
+    w = np.clip(w - np.median(w) - 5, 0, None)
+    ys, xs = np.mgrid[y0:y0 + 2 * half + 1, x0:x0 + 2 * half + 1]
+    return np.array([(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()])
+
+
+@pytest.fixture(scope="module")
+def dot_renderer(cam, clean_settings):
+    tex = with_height(np.full((2048, 2048, 3), 60, np.uint8))
+    for p in DOTS:
+        tex = add_dot(tex, p, SIZE, 0.0008)
+    return Renderer(cam, clean_settings, PlanarTarget(SIZE, tex))
+
+
+@pytest.mark.parametrize("pose", [
+    make_pose((0.0, 0.0, 0.05)),                                  # face-on
+    make_pose((0.004, -0.002, 0.045), (0.3, -0.2, 0.5)),          # tilted and turned
+    make_pose((0.0, 0.0, 0.12), (0.0, 0.0, -0.7)),                # far: coarser texture pyramid level
+    make_pose((0.002, 0.001, 0.03), (0.0, 0.0, 1.0)),             # near
+])
+def test_rendered_dot_lands_where_project_says(dot_renderer, cam, pose):
+    frame = dot_renderer.render(np.eye(4), pose)
+    checked = 0
+    for p in DOTS:
+        truth = project(world_to_camera(np.eye(4), (pose @ [p[0], p[1], 0.0, 1.0])[:3]), cam)
+        if math.hypot(truth[0] - cam.cx, truth[1] - cam.cy) > 250:
+            continue
+        err = np.hypot(*(_centroid(frame.image, truth) - truth))
+        assert err < 0.5, f"dot {p} at {truth}: centroid off by {err:.3f} px"
+        checked += 1
+    assert checked >= 3
+
+
+def test_truth_is_projection_of_selected_point(renderer, cam):
+    target_pose = make_pose((0.003, -0.001, 0.05), (0.1, 0.2, 0.3))
+    cam_pose = make_pose((0.001, 0.0, 0.0), (0.0, 0.05, 0.0))
+    frame = renderer.render(cam_pose, target_pose, point_m=(0.01, -0.02))
+    world = (target_pose @ [0.01, -0.02, 0.0, 1.0])[:3]
+    np.testing.assert_allclose(frame.truth_px, project(world_to_camera(cam_pose, world), cam), atol=1e-9)
+    assert frame.visible and not frame.occluded
+    assert frame.image.shape == (576, 720, 3) and frame.image.dtype == np.uint8
+
+
+def test_round_field_of_view_is_black_outside(renderer, cam):
+    img = renderer.render(np.eye(4), make_pose((0, 0, 0.05))).image
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+    r = np.hypot(xs - cam.cx, ys - cam.cy)
+    rf = renderer.settings.fov_radius_px
+    assert img[r > rf + 1.5].max() == 0                 # exactly black outside the circle
+    inside = img[r < rf - 40].max(axis=1)
+    assert (inside > 20).mean() > 0.99                    # lit tissue inside
+
+
+def test_light_falls_off_with_distance_and_follows_gain(renderer):
+    near = renderer.render(np.eye(4), make_pose((0, 0, 0.04))).image
+    far = renderer.render(np.eye(4), make_pose((0, 0, 0.08))).image
+    dim = renderer.render(np.eye(4), make_pose((0, 0, 0.04)), light_gain=0.4).image
+    c = (slice(250, 330), slice(320, 400))
+    assert far[c].mean() < 0.85 * near[c].mean()
+    assert dim[c].mean() < 0.8 * near[c].mean()
+    # centre brighter than the periphery (cos^3 fall-off at a fixed plane)
+    assert near[270:310, 340:380].mean() > near[270:310, 130:170].mean()
+
+
+def test_motion_blur_integrates_the_exposure(renderer):
+    p0 = make_pose((0, 0, 0.05))
+    p1 = make_pose((0.004, 0, 0.05))  # ~24 px to the right during the exposure
+    sharp = renderer.render(np.eye(4), p0)
+    blurred = renderer.render(np.eye(4), p0, target_pose_end=p1)
+    assert blurred.subframes > 4 and sharp.subframes == 1
+    gx = lambda im: np.abs(cv2.Sobel(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY), cv2.CV_32F, 1, 0))[200:380, 260:460].mean()
+    assert gx(blurred.image) < 0.7 * gx(sharp.image)     # horizontal detail smeared out
+    mid = renderer.truth(np.eye(4), make_pose((0.002, 0, 0.05)))
+    np.testing.assert_allclose(blurred.truth_px, mid, atol=1e-6)  # truth at mid-exposure
+
+
+def test_noise_is_seeded(cam, mucosa_target):
+    a = Renderer(cam, RenderSettings(), mucosa_target, seed=5).render(np.eye(4), make_pose((0, 0, 0.05))).image
+    b = Renderer(cam, RenderSettings(), mucosa_target, seed=5).render(np.eye(4), make_pose((0, 0, 0.05))).image
+    c = Renderer(cam, RenderSettings(), mucosa_target, seed=6).render(np.eye(4), make_pose((0, 0, 0.05))).image
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+    noise = (a.astype(int) - c.astype(int))[200:380, 260:460]
+    assert 1.5 < noise.std() < 5.0                       # ~ sqrt(2) * sigma (2 levels)
+
+
+def test_specular_highlights_saturate(cam, mucosa_target):
+    on = Renderer(cam, RenderSettings(), mucosa_target).render(np.eye(4), make_pose((0, 0, 0.035)))
+    off = Renderer(cam, RenderSettings(specular_strength=0.0), mucosa_target).render(np.eye(4), make_pose((0, 0, 0.035)))
+    white_on = (on.image.min(axis=2) > 230).sum()
+    white_off = (off.image.min(axis=2) > 230).sum()
+    assert white_on > 100 and white_off == 0
+
+
+def test_occluder_hides_the_target(renderer, cam):
+    poly = np.array([[300, 250], [420, 250], [420, 330], [300, 330]], float)
+    f = renderer.render(np.eye(4), make_pose((0, 0, 0.05)), occluders=[poly])
+    assert f.occluded and not f.visible
+    patch = f.image[270:310, 320:400].astype(float)
+    assert patch.std(axis=(0, 1)).max() < 8              # uniform instrument colour
+    g = renderer.render(np.eye(4), make_pose((0.07, 0.0, 0.05)))
+    assert not g.visible and not g.occluded               # outside the field of view
+
+
+def test_settings_are_validated():
+    with pytest.raises(ConfigError, match="fov_radius_px"):
+        validate(RenderSettings(fov_radius_px=-5.0))
+    with pytest.raises(ConfigError, match=r"noise_sigma.*\[0.0, 50.0\]"):
+        validate(RenderSettings(noise_sigma=80.0))
+
+
+def test_textures_are_deterministic():
+    a = mucosa_texture(7, 256)
+    b = mucosa_texture(7, 256)
+    c = mucosa_texture(8, 256)
+    assert a.shape == (256, 256, 4) and np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+def test_aruco_target_renders_detectably(cam):
+    r = Renderer(cam, RenderSettings(), PlanarTarget.aruco(marker_id=7))
+    f = r.render(np.eye(4), make_pose((0.002, -0.001, 0.05), (0.15, -0.1, 0.6)))
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50),
+                                  cv2.aruco.DetectorParameters())
+    corners, ids, _ = det.detectMarkers(cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY))
+    assert ids is not None and 7 in ids.ravel()
+    assert aruco_texture(7)[..., 3].min() == 0  # the printed marker is matte (height 0)
+
+
+def test_render_is_fast_enough(renderer):
+    pose = make_pose((0.002, 0, 0.05), (0.1, 0.1, 0.2))
+    renderer.render(np.eye(4), pose)
+    t0 = time.perf_counter()
+    for _ in range(10):
+        renderer.render(np.eye(4), pose)
+    ms = (time.perf_counter() - t0) / 10 * 1e3
+    assert ms < 40.0, f"{ms:.1f} ms per frame"  # ~5 ms on one core; generous for shared CI machines
+
+
+def test_camera_in_the_target_plane_gives_a_black_frame(renderer):
+    f = renderer.render(make_pose((0, 0, 0.05)), make_pose((0, 0, 0.05)))
+    assert not f.visible and f.image.max() == 0
