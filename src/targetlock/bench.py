@@ -10,7 +10,7 @@ import numpy as np
 from .model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
 from .model.twin import TwinConfig
 
-__all__ = ["bench_model", "bench_loop"]
+__all__ = ["bench_model", "bench_loop", "bench_vision"]
 
 
 def _randomised(base: EndoscopeParams, rng: np.random.Generator, n: int) -> list[EndoscopeParams]:
@@ -97,3 +97,27 @@ def bench_loop(seconds: float = 40.0, repeats: int = 3) -> dict:
     ik_ms = (time.perf_counter() - t0) / n * 1e3
     return {"realtime_factor": seconds / wall, "sim_seconds": seconds, "wall_seconds": wall,
             "controller": "pi-hc", "ik_step_ms": ik_ms, "ik_steps": n}
+
+
+def bench_vision(seconds: float = 20.0, seed: int = 0) -> dict:
+    """Renderer ms per frame, tracker fps (evaluation sequences, one core) and the closed loop with
+    vision (render + track every frame, PI + compensation, linear path) as a real-time factor."""
+    import cv2
+
+    from .experiments.target_lock import RunConfig, run_target_lock
+    from .loop.runner import LoopConfig
+    from .vision.evaluate import EvalSettings, evaluate
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        ev = evaluate(EvalSettings(sequences=("slow", "fast", "tip", "specular")), seed=seed)
+        cfg = RunConfig(loop=LoopConfig(seconds=seconds), vision=True, seed=seed)
+        run_target_lock(dataclasses.replace(cfg, loop=LoopConfig(seconds=1.0)))  # warm caches
+        s = run_target_lock(cfg)
+    finally:
+        cv2.setNumThreads(threads)
+    return {"render_ms": s["vision"]["render_ms"], "track_ms": s["vision"]["track_ms"],
+            "tracker_fps": ev["overall"]["fps"], "eval_median_px": ev["overall"]["median_px"],
+            "loop_realtime_factor": s["realtime_factor"], "loop_sim_seconds": seconds,
+            "loop_rms_px": s["rms_px"], "loop_tracker_median_px": s["vision"]["tracker_median_px"], "threads": 1}

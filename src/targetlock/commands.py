@@ -28,6 +28,9 @@ def _loop_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drop", type=float, metavar="P", help="probability of a dropped frame")
     p.add_argument("--outliers", type=float, metavar="P", help="probability of an outlier observation")
     p.add_argument("--realtime", action="store_true", help="run on the wall clock")
+    p.add_argument("--vision", action="store_true", help="render endoscope frames and track them (instead of the "
+                                                         "ideal projection)")
+    p.add_argument("--tracker", choices=("feature", "marker"), help="tracker with --vision (default feature)")
 
 
 def _overrides(args: argparse.Namespace) -> dict:
@@ -56,6 +59,10 @@ def _overrides(args: argparse.Namespace) -> dict:
         o["tracker"]["seed"] = args.seed
     if args.realtime:
         o["realtime"] = True
+    if args.vision:
+        o["vision"] = True
+    if args.tracker:
+        o["vision_tracker"] = args.tracker
     return o
 
 
@@ -75,6 +82,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi-hc)")
     p.add_argument("--rig", metavar="FILE", help="run on the rig this file describes (CANopen drives, NatNet, "
                                                  "observations) on the wall clock, instead of the in-process twin")
+    p.add_argument("--video", metavar="FILE.mp4", help="with --vision: write the endoscope view with the tracked "
+                                                       "target, the image centre and the error drawn on it")
     _loop_options(p)
 
 
@@ -85,6 +94,9 @@ def _run(args: argparse.Namespace) -> int:
     from .experiments.target_lock import RunConfig, run_target_lock
 
     cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
+    if args.video and not cfg.vision:
+        from .config import ConfigError
+        raise ConfigError("--video needs --vision (frames are rendered only with vision)")
     hw = None
     if args.rig:
         from .interfaces.rigfile import load_rig_file
@@ -100,8 +112,13 @@ def _run(args: argparse.Namespace) -> int:
         finally:
             rig.close()
     else:
-        s = run_target_lock(cfg, run, progress=True)
+        s = run_target_lock(cfg, run, progress=True, video=args.video)
     _print_summary(s)
+    if "vision" in s:
+        v = s["vision"]
+        print(f"  vision: tracker error median {v['tracker_median_px']:.2f} px, p95 {v['tracker_p95_px']:.2f} px; "
+              f"render {v['render_ms']:.1f} ms, track {v['track_ms']:.1f} ms per frame"
+              + (f"; video {args.video}" if args.video else ""))
     if "timing_ms" in s:
         tm = s["timing_ms"]
         print(f"  loop period jitter p50 {tm['period_jitter_p50']:.2f} ms, p99 {tm['period_jitter_p99']:.2f} ms, "
@@ -259,4 +276,40 @@ def _sim_rig(args: argparse.Namespace) -> int:
         pass
     finally:
         stop.set()
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- vision-eval
+def _vision_eval_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tracker", choices=("feature", "marker"), help="tracker under test (default feature)")
+    p.add_argument("--sequences", nargs="+", metavar="NAME", help="sequences to run (default: all)")
+    p.add_argument("--frames", type=int, help="frames per sequence (default 66)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the rendered sequences")
+    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/vision-eval-<time>)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
+
+
+@command("vision-eval", "score the tracker on rendered sequences with known ground truth")(_vision_eval_options)
+def _vision_eval(args: argparse.Namespace) -> int:
+    from .config import from_dict
+    from .experiments.common import print_json_last
+    from .experiments.runfolder import RunFolder
+    from .vision.evaluate import EvalSettings, evaluate
+
+    over = {k: v for k, v in (("tracker", args.tracker), ("sequences", args.sequences), ("frames", args.frames))
+            if v is not None}
+    settings = from_dict(EvalSettings, over)
+    run = RunFolder("vision-eval", settings, args.out)
+    res = evaluate(settings, seed=args.seed, progress=lambda line: print("  " + line, flush=True))
+    o = res["overall"]
+    summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
+               "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"], "tracker": settings.tracker,
+               "seed": args.seed, "sequences": res["sequences"], "run_folder": str(run.path)}
+    run.write_summary(summary)
+    print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames): "
+          f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
+          f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
+    print(f"run folder: {run.path}")
+    if args.json:
+        print_json_last(summary)
     return 0

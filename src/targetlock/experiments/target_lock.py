@@ -35,6 +35,7 @@ class RunConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     tracker: ObservationNoise = field(default_factory=ObservationNoise)
     vision: bool = param(False, doc="render frames and track them instead of the ideal projection")
+    vision_tracker: str = param("feature", choices=("feature", "marker"), doc="tracker used with vision = true")
     realtime: bool = param(False, doc="run on the wall clock instead of as fast as possible")
     seed: int = param(0, lo=0, hi=2**63 - 1, doc="seed of everything random in the run")
 
@@ -119,12 +120,16 @@ def metrics(data: np.ndarray, frame_log: list[tuple[float, bool]], after: float)
 
 
 def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: bool = False,
-                    frame_hook=None, rig=None) -> dict:
+                    frame_hook=None, rig=None, video=None) -> dict:
     """Run the closed loop as configured; returns the summary (and fills ``run`` if given).
 
     ``rig``: a rig to run on instead of the in-process twin (e.g. a :class:`HardwareRig`); it
     then runs on the wall clock and must offer ``truth_offset``, ``tip_angles`` and ``frame_log``."""
     hardware = rig is not None
+    vision = None
+    if cfg.vision and frame_hook is None and not hardware:
+        from ..vision.pipeline import VisionPipeline
+        vision = frame_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed, video=video)
     rig = rig if hardware else build_rig(cfg, frame_hook)
     ctrl = build_controller(cfg, rig)
     realtime = cfg.realtime or hardware
@@ -150,11 +155,15 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
             writer.close()
         if bar is not None:
             bar.close()
+        if vision is not None:
+            vision.close()
     data = np.asarray(rec.rows, dtype=float)
     summary = metrics(data, rig.frame_log, cfg.loop.metrics_after)
     summary.update({"rig": "hardware" if hardware else "twin", "controller": cfg.controller.kind, "path": cfg.twin.scene.path, "latency_s": cfg.twin.camera.latency,
                     "fps": cfg.twin.camera.fps, "preset": cfg.twin.preset, "sim_seconds": cfg.loop.seconds,
                     "wall_seconds": wall, "realtime_factor": cfg.loop.seconds / wall if wall > 0 else math.inf})
+    if vision is not None:
+        summary["vision"] = vision.stats()
     if realtime:
         late, internal = np.array(rec.lateness) * 1e3, np.array(rec.internal) * 1e3
         summary["timing_ms"] = {

@@ -110,6 +110,8 @@ class HardwareRig(Rig):
         self._t0 = time.monotonic()
         if isinstance(self.observations, MocapObservations):
             self.observations.clock_offset = self._t0
+        else:
+            self.observations.start_clock(self._t0)
 
     @property
     def time(self) -> float:

@@ -1,0 +1,96 @@
+"""Vision in the closed loop: the twin renders each frame at capture time, the tracker measures it.
+
+:class:`VisionPipeline` is a ``frame_hook`` for :class:`~targetlock.rig.simulated.SimulatedRig`:
+at every capture it renders the endoscope view from the twin's camera and target poses (motion
+blur from the motion over the exposure), runs the tracker and returns the observation; the rig
+puts it on the latency line. The target is selected on the first frame where the clinician would
+click it (the target's true position), with a square window. Optionally every frame is written to
+an MP4 with the tracked target, the image centre and the error drawn on it.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..model.twin import TwinConfig
+from ..rig.base import Observation
+from .overlay import draw_overlay
+from .render import PlanarTarget, RenderSettings, Renderer, interpolate_pose
+from .tracker import make_tracker, to_observation
+
+__all__ = ["VisionPipeline"]
+
+
+class VisionPipeline:
+    """Render -> track -> observation, called by the simulated rig at each frame capture."""
+
+    def __init__(self, twin: TwinConfig, *, tracker: str = "feature", window_px: int = 96, seed: int = 0,
+                 settings: RenderSettings | None = None, exposure_fraction: float = 0.5,
+                 video: str | Path | None = None) -> None:
+        self.cam = twin.camera
+        # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
+        size = (0.4, 0.4)
+        self.target = (PlanarTarget.aruco(seed=seed, size_m=size, marker_fraction=0.06, texture_px=4096)
+                       if tracker == "marker" else PlanarTarget.mucosa(size_m=size, seed=seed, texture_px=4096))
+        self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed)
+        self.tracker = make_tracker(tracker, camera=self.cam)
+        self.window_px = window_px
+        self.exposure = exposure_fraction / self.cam.fps   # s, the shutter is open this long before capture
+        self.prev: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.selected = False
+        self.render_seconds = 0.0
+        self.track_seconds = 0.0
+        self.frames = 0
+        self.errors: list[float] = []
+        self._writer = None
+        if video is not None:
+            fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+            self._writer = cv2.VideoWriter(str(video), fourcc, self.cam.fps, (self.cam.width, self.cam.height))
+            if not self._writer.isOpened():
+                raise OSError(f"cannot write video {video}")
+
+    def __call__(self, rig, t: float, truth: np.ndarray) -> Observation:
+        cam_pose = rig.camera_pose()
+        target_pose = rig.scene.target_pose(t)
+        start_cam, start_target = cam_pose, target_pose
+        if self.prev is not None and t > self.prev[0]:
+            # Poses at the start of the exposure, interpolated between the previous capture and now.
+            f = max(0.0, 1.0 - self.exposure / (t - self.prev[0]))
+            start_cam = interpolate_pose(self.prev[1], cam_pose, f)
+            start_target = interpolate_pose(self.prev[2], target_pose, f)
+        self.prev = (t, cam_pose, target_pose)
+        t0 = time.perf_counter()
+        frame = self.renderer.render(start_cam, start_target, camera_pose_end=cam_pose, target_pose_end=target_pose)
+        t1 = time.perf_counter()
+        if not self.selected:
+            self.selected = True
+            self.tracker.select(frame.image, frame.truth_px, self.window_px)
+        result = self.tracker.update(frame.image)
+        t2 = time.perf_counter()
+        self.render_seconds += t1 - t0
+        self.track_seconds += t2 - t1
+        self.frames += 1
+        obs = to_observation(result, t, self.cam.cx, self.cam.cy, frame_index=rig.frame_index, truth_px=frame.truth_px)
+        if obs.valid and frame.visible:
+            self.errors.append(float(np.hypot(*(obs.offset - obs.truth))))
+        if self._writer is not None:
+            err = np.hypot(*frame.truth_offset(self.cam))
+            self._writer.write(draw_overlay(frame.image, result, centre_px=(self.cam.cx, self.cam.cy),
+                                            truth_px=frame.truth_px, lines=(f"t = {t:5.2f} s",
+                                                                            f"target error {err:5.1f} px")))
+        return obs
+
+    def stats(self) -> dict:
+        e = np.asarray(self.errors)
+        n = max(self.frames, 1)
+        return {"frames": self.frames, "render_ms": 1e3 * self.render_seconds / n, "track_ms": 1e3 * self.track_seconds / n,
+                "tracker_median_px": float(np.median(e)) if e.size else float("nan"),
+                "tracker_p95_px": float(np.percentile(e, 95)) if e.size else float("nan")}
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None

@@ -1,0 +1,46 @@
+"""Vision in the closed loop and the vision commands."""
+import json
+
+import cv2
+import numpy as np
+
+from targetlock.cli import main
+
+
+def test_run_with_vision_scores_against_ground_truth_and_writes_a_video(tmp_path, capsys):
+    out, video = tmp_path / "r", tmp_path / "lock.mp4"
+    assert main(["run", "--vision", "--seconds", "5", "--out", str(out), "--video", str(video), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["vision"]["frames"] == 111
+    assert s["vision"]["tracker_median_px"] < 3.0
+    assert s["lost_fraction"] == 0.0
+    cap = cv2.VideoCapture(str(video))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 111
+    assert main(["run", "--seconds", "5", "--out", str(tmp_path / "ideal"), "--json"]) == 0
+    ideal = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # Same lock through rendered frames and a real tracker as with the ideal projection.
+    assert abs(s["rms_px"] - ideal["rms_px"]) < 0.15 * ideal["rms_px"] + 2.0
+
+
+def test_marker_tracker_in_the_loop(capsys, tmp_path):
+    assert main(["run", "--vision", "--tracker", "marker", "--seconds", "4", "--out", str(tmp_path / "m"), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["vision"]["tracker_median_px"] < 2.0 and s["lost_fraction"] == 0.0
+
+
+def test_video_without_vision_is_refused(capsys, tmp_path):
+    assert main(["run", "--video", str(tmp_path / "x.mp4"), "--seconds", "1"]) == 2
+    assert "--vision" in capsys.readouterr().err
+
+
+def test_vision_eval_command(tmp_path, capsys):
+    assert main(["vision-eval", "--sequences", "slow", "occlusion", "--frames", "30", "--out", str(tmp_path / "e"),
+                 "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("median_px", "p95_px", "tracked_fraction", "delta_avg", "fps"):
+        assert np.isfinite(s[key])
+    assert set(s["sequences"]) == {"slow", "occlusion"}
+    assert s["tracked_fraction"] > 0.9
