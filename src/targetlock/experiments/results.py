@@ -106,6 +106,18 @@ def write_results_page(md_path: Path, img_dir: Path, extra_rows: list[str] | Non
         settle = "not within 6 s" if math.isnan(r["settling_time_s"]) else f"{r['settling_time_s']:.2f}"
         lines.append(f"| {r['i_gain']:g} | {r['rise_time_s']:.2f} | {r['overshoot_px']:.0f} | {settle} |")
     lines += ["", "![step](img/results_step.png)", ""]
+    # Vision in the loop: rendered frames through the feature tracker, scored against ground truth.
+    lines += ["## Vision in the loop (rendered frames, feature tracker), straight path, report geometry", "",
+              "| controller | ideal rms | ideal peak | vision rms | vision peak | tracker median | tracker p95 | "
+              "frames lost | speed |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for kind in ("pi-hc", "pi-smith"):
+        ideal = results[("linear", kind)][0]
+        v = run_target_lock(dataclasses.replace(scenario("linear", kind, 0.4), vision=True))
+        vs = v["vision"]
+        lines.append(f"| {kind} | {_fmt(ideal['rms_px'])} | {_fmt(ideal['peak_px'])} | {_fmt(v['rms_px'])} | "
+                     f"{_fmt(v['peak_px'])} | {vs['tracker_median_px']:.2f} px | {vs['tracker_p95_px']:.2f} px | "
+                     f"{100 * v['lost_fraction']:.1f} % | {v['realtime_factor']:.1f}x real time |")
+    lines += ["", "Speed: one core, rendering and tracking every frame (22 fps); `targetlock bench vision` measures it.", ""]
     if extra_rows:
         lines += extra_rows
     lines += [EXPLANATION]
