@@ -15,31 +15,13 @@ import numpy as np
 import pytest
 
 import targetlock
-from targetlock.interfaces.canbus import CanBusConfig, UdpLoopbackBus
+from targetlock.interfaces.canbus import CanBusConfig, udp_loopback_problem
 from targetlock.interfaces.cia402 import CanopenDrives, CanopenRigConfig
 from targetlock.interfaces.od402 import State
 
 from iface_helpers import free_udp_port
 
 SRC = str(Path(targetlock.__file__).resolve().parent.parent)
-
-
-def loopback_multicast_problem(group: str, port: int) -> str | None:
-    """None if two UdpLoopbackBus instances can exchange a frame on this host, else the reason."""
-    try:
-        a = UdpLoopbackBus(group, port=port)
-        b = UdpLoopbackBus(group, port=port)
-    except OSError as exc:
-        return f"cannot join multicast group {group} on the loopback interface: {exc}"
-    try:
-        a.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
-        msg = b.recv(1.0)
-        if msg is None or msg.arbitration_id != 0x123:
-            return "multicast datagrams are not looped back on 127.0.0.1 in this sandbox"
-        return None
-    finally:
-        a.shutdown()
-        b.shutdown()
 
 
 def read_line(proc: subprocess.Popen, timeout: float) -> str:
@@ -56,7 +38,7 @@ def read_line(proc: subprocess.Popen, timeout: float) -> str:
 def test_driver_and_sim_drives_in_separate_processes():
     group = f"239.255.{random.randint(100, 250)}.{random.randint(1, 250)}"
     port = free_udp_port()
-    problem = loopback_multicast_problem(group, port)
+    problem = udp_loopback_problem(group, port)
     if problem:
         pytest.skip(problem)
     env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -105,7 +87,7 @@ def test_sim_rig_command_streams_the_tip_pose_of_the_driven_handles():
 
     group = f"239.255.{random.randint(100, 250)}.{random.randint(1, 250)}"
     port, cmd_port, data_port = free_udp_port(), free_udp_port(), free_udp_port()
-    problem = loopback_multicast_problem(group, port)
+    problem = udp_loopback_problem(group, port)
     if problem:
         pytest.skip(problem)
     env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))

@@ -198,3 +198,22 @@ class UdpLoopbackBus(can.BusABC):
             self._sock.close()
         except OSError:
             pass
+
+
+def udp_loopback_problem(group: str, port: int) -> str | None:
+    """None if two :class:`UdpLoopbackBus` instances on this host can exchange a frame, else the reason
+    (e.g. a sandbox that does not loop multicast back on 127.0.0.1)."""
+    try:
+        a = UdpLoopbackBus(group, port=port)
+        b = UdpLoopbackBus(group, port=port)
+    except OSError as exc:
+        return f"cannot join multicast group {group} on the loopback interface: {exc}"
+    try:
+        a.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
+        msg = b.recv(1.0)
+        if msg is None or msg.arbitration_id != 0x123:
+            return "multicast datagrams are not looped back on 127.0.0.1 on this host"
+        return None
+    finally:
+        a.shutdown()
+        b.shutdown()
