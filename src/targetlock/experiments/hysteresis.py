@@ -130,8 +130,12 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, c
     """The same sweep through a rig's drives, the tip measured by the rig (motion capture), in real time.
 
     Curves run one after the other; between them both handles return to neutral over 3 s.
-    ``rig`` needs ``drives`` and ``tip_angles()`` (rad); handle angles are the drives' positions.
+    ``rig`` needs ``drives`` and ``tip_measurement() -> (angles rad, capture time s monotonic)``.
+    Handle angles are the drives' positions, interpolated to each motion-capture sample's capture
+    time: a tip sample some milliseconds old must meet the handle angle of that moment (report §3.1).
     """
+    import time
+
     from ..loop.clock import WallClock
     clock = clock or WallClock()
     drives = rig.drives
@@ -141,7 +145,9 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, c
     setpoints, phase, n_pos = _program(cfg, sample_rate)
     n_t, n = setpoints.shape[:2]
     handle = np.full((n_t, n, 2), np.nan)
+    t_handle = np.full((n_t, n), np.nan)
     tips = np.full((n_t, n, 2), np.nan)
+    t_tip = np.full((n_t, n), np.nan)
     back = np.linspace(1.0, 0.0, int(3.0 * sample_rate))
     clock.start()
     k_total = 0
@@ -151,13 +157,17 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, c
             clock.sleep_until(k_total / sample_rate)
             drives.send_setpoints(np.rint(setpoints[k, c] / rpt).astype(np.int64))
             handle[k, c] = drives.positions() * rpt
-            tips[k, c] = rig.tip_angles()
+            t_handle[k, c] = time.monotonic()
+            tips[k, c], t_tip[k, c] = rig.tip_measurement()
         last = setpoints[-1, c]
         for f in back:  # return to neutral before the next curve
             k_total += 1
             clock.sleep_until(k_total / sample_rate)
             drives.send_setpoints(np.rint(f * last / rpt).astype(np.int64))
-    # A missed mocap sample holds the previous measurement.
+    # Handle angle at each tip sample's capture time; a missed mocap sample holds the previous one.
+    for c in range(n):
+        for a in range(2):
+            handle[:, c, a] = np.interp(t_tip[:, c], t_handle[:, c], handle[:, c, a])
     for c in range(n):
         for a in range(2):
             col = tips[:, c, a]

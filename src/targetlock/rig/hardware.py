@@ -54,6 +54,11 @@ class MocapObservations(ObservationSource):
 
     def measure(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(offset px from the image centre, bending angles rad) now, or None without a usable sample."""
+        m = self.measure_with_time()
+        return None if m is None else m[:2]
+
+    def measure_with_time(self) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Like :meth:`measure`, plus the sample's capture time (s, monotonic clock)."""
         s = self.client.get()
         if s is None:
             return None
@@ -67,7 +72,7 @@ class MocapObservations(ObservationSource):
         c = self.camera
         if not (0 <= px[0] < c.width and 0 <= px[1] < c.height):
             px = np.array([np.nan, np.nan])
-        return px - (c.cx, c.cy), bending_angles_from_poses(base, tip)
+        return px - (c.cx, c.cy), bending_angles_from_poses(base, tip), s.capture_time
 
     def poll(self, now: float) -> list[Observation]:
         period = 1.0 / self.camera.fps
@@ -139,6 +144,15 @@ class HardwareRig(Rig):
             if m is not None:
                 return m[1]
         return np.array([math.nan, math.nan])
+
+    def tip_measurement(self) -> tuple[np.ndarray, float]:
+        """Bending angles (rad) from motion capture with their capture time (s, monotonic clock);
+        NaN angles without a sample."""
+        if isinstance(self.observations, MocapObservations):
+            m = self.observations.measure_with_time()
+            if m is not None:
+                return m[1], m[2]
+        return np.array([math.nan, math.nan]), time.monotonic()
 
     def close(self) -> None:
         try:
