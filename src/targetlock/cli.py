@@ -67,11 +67,8 @@ def _hysteresis(args: argparse.Namespace) -> int:
     if hw is not None:
         from .experiments.hysteresis import run_sweep_on_rig
         from .rig.hardware import HardwareRig
-        rig = HardwareRig(hw, cfg.twin.camera)
-        try:
+        with HardwareRig(hw, cfg.twin.camera) as rig:
             res = run_sweep_on_rig(cfg, rig)
-        finally:
-            rig.close()
     else:
         res = run_sweep(cfg)
     with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle"]) as ts:

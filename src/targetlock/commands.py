@@ -106,11 +106,8 @@ def _run(args: argparse.Namespace) -> int:
         from .config import save_toml
         from .rig.hardware import HardwareRig
         save_toml(hw, run.file("rig.toml"))
-        rig = HardwareRig(hw, cfg.twin.camera)
-        try:
+        with HardwareRig(hw, cfg.twin.camera) as rig:
             s = run_target_lock(cfg, run, progress=True, rig=rig)
-        finally:
-            rig.close()
     else:
         s = run_target_lock(cfg, run, progress=True, video=args.video)
     _print_summary(s)

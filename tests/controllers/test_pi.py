@@ -5,6 +5,7 @@ import pytest
 
 from targetlock.config import ConfigError, validate
 from targetlock.controllers import ControllerConfig, PIController
+from targetlock.model.camera import CameraParams
 from targetlock.rig.base import Observation
 
 RPT = 1.6e-5
@@ -13,7 +14,7 @@ LO, HI = np.array([-2.0, -2.0]), np.array([2.0, 2.0])
 
 def make(kind="pi", **kw):
     cfg = ControllerConfig(kind=kind, **kw)
-    return PIController(cfg, rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02, px_per_rad=450.0, latency=0.4)
+    return PIController(cfg, rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02, latency=0.4, camera=CameraParams())
 
 
 def obs(t, x, y=0.0, valid=True):
@@ -111,6 +112,11 @@ def test_model_2_width_grows_with_both_bending_angles():
     w1 = c._width(np.array([0.5, 0.8]))
     assert w0[0] == pytest.approx(0.1 * 0.8 * 0.5 + math.radians(9.0))
     assert w1[0] > w0[0]
+
+
+def test_predictor_needs_the_camera():
+    with pytest.raises(ValueError, match="camera"):
+        PIController(ControllerConfig(kind="pi-smith"), rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02)
 
 
 def test_prediction_subtracts_the_motion_since_capture():

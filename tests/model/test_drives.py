@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from targetlock.config import ConfigError, validate
-from targetlock.model.drives import DriveModel, DriveParams, drive_step
+from targetlock.model.drives import DriveParams, drive_step
 
 
 def run(theta, setpoint, seconds, p, dt=1e-4):
@@ -27,17 +27,6 @@ def test_large_step_is_rate_limited():
     traj = run(0.0, 1.5, 0.5, p, dt)
     assert np.max(np.diff(traj)) / dt <= p.max_velocity * (1 + 1e-9)
     assert p.max_velocity == pytest.approx(1.6)  # 100000 tick/s x 1.6e-5 rad/tick
-
-
-def test_setpoints_are_clamped_to_the_range_in_ticks():
-    p = DriveParams()
-    d = DriveModel(p)
-    applied = d.command_ticks(0, 10 ** 9)
-    assert applied == p.max_ticks
-    for _ in range(5000):
-        d.advance(1e-3)
-    assert d.angle[0] <= p.max_angle + 1e-12
-    assert abs(d.position_ticks(0) - p.max_ticks) <= 1
 
 
 def test_inverted_range_is_refused():

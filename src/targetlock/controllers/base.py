@@ -109,6 +109,3 @@ class Controller(abc.ABC):
         """Anti-windup: the integrator never leaves the setpoint range."""
         return np.clip(value, self.lower, self.upper)
 
-
-def unit_deg(x: float) -> float:
-    return math.radians(x)

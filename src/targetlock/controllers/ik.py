@@ -21,7 +21,7 @@ from ..model.camera import CameraParams, unproject
 from ..model.kinematics import tip_pose
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
-from .pi import MotorHistory
+from .pi import History
 
 __all__ = ["IKController", "aim_angles"]
 
@@ -76,7 +76,7 @@ class IKController(Controller):
         self.tip_length = float(tip_length)
         self.n_elements = int(n_elements)
         self.delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
-        self.history = MotorHistory(self.delay + 1.0, self.control_dt)
+        self.history = History(self.delay + 1.0, self.control_dt)
         self.goal = np.zeros(2)
 
     def _reset(self, motor: np.ndarray, t: float) -> None:

@@ -43,23 +43,26 @@ from ..model.endoscope import EndoscopeParams, advance, initial_state, pack_para
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 
-__all__ = ["PIController", "MotorHistory"]
+__all__ = ["PIController", "History"]
 
 
-class MotorHistory:
-    """Recent measured motor angles, to look up where the motors were at a past time (s, rad)."""
+class History:
+    """Recent timed samples of an angle pair (motor or tip, rad), to look up a past time (s)."""
 
     def __init__(self, horizon: float, dt: float) -> None:
         self._buf: deque[tuple[float, np.ndarray]] = deque(maxlen=max(4, int(math.ceil(horizon / dt)) + 4))
 
-    def push(self, t: float, motor: np.ndarray) -> None:
-        self._buf.append((t, np.array(motor, dtype=float)))
+    def push(self, t: float, value: np.ndarray) -> None:
+        self._buf.append((t, np.array(value, dtype=float)))
+
+    def clear(self) -> None:
+        self._buf.clear()
 
     def at(self, t: float) -> np.ndarray:
-        """Motor angles at time ``t``, interpolated; clamped to the oldest/newest sample."""
+        """The value at time ``t``, interpolated; clamped to the oldest/newest sample."""
         buf = self._buf
         if not buf:
-            raise LookupError("no motor history yet")
+            raise LookupError("no history yet")
         if t <= buf[0][0]:
             return buf[0][1].copy()
         if t >= buf[-1][0]:
@@ -77,10 +80,11 @@ class MotorHistory:
 class PIController(Controller):
     """PI (``pi``), PI + compensation model 1 (``pi-hc``) or model 2 (``pi-hc2``), and ``pi-smith``."""
 
-    def __init__(self, cfg: ControllerConfig, *, px_per_rad: float = 450.0, latency: float = 0.4,
-                 endoscope: EndoscopeParams | None = None, model_dt: float = 0.001,
-                 camera: CameraParams | None = None, **kw) -> None:
+    def __init__(self, cfg: ControllerConfig, *, latency: float = 0.4, endoscope: EndoscopeParams | None = None,
+                 model_dt: float = 0.001, camera: CameraParams | None = None, **kw) -> None:
         super().__init__(cfg, **kw)
+        if cfg.kind == "pi-smith" and camera is None:
+            raise ValueError("the pi-smith predictor needs the camera (it re-projects the target)")
         self.camera = camera
         e = endoscope or EndoscopeParams()
         self.geometry = (e.tip_length, e.n_elements)
@@ -89,42 +93,35 @@ class PIController(Controller):
                                         DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3))
         self.model_dt = model_dt
         self.model_state = initial_state(1)
-        self.tip_history = MotorHistory(1.0, self.control_dt)
-        self.target_track: deque = deque(maxlen=5)
         self.kind = cfg.kind
         self.i_gain = cfg.i_gain * self.rad_per_tick      # rad/(px·s)
         self.p_gain = cfg.p_gain * self.rad_per_tick      # rad/px
-        self.px_per_rad = float(px_per_rad)
-        self.delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
-        self.history = MotorHistory(self.delay + 1.0, self.control_dt)
+        delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
+        self.tip_history = History(delay + 1.0, self.control_dt)   # online model's tip angles (pi-smith)
+        self.target_track: deque = deque(maxlen=5)                  # (capture time, world position) of the target
         self.integrator = np.zeros(2)
         self.direction = np.ones(2)
         self.compensation = np.zeros(2)
-        self.x = np.zeros(2)
 
     def _reset(self, motor: np.ndarray, t: float) -> None:
         self.integrator = motor.copy()
         self.direction = np.where(motor < 0, -1.0, 1.0)   # assume the tip got here moving outwards
         self.compensation = np.zeros(2)
-        self.x = np.zeros(2)
-        self.history.push(t, motor)
+        self.target_track.clear()
         if self.kind == "pi-smith":
             # The tip got to this motor position by bending outwards from straight.
             self.model_state = initial_state(1)
             for f in np.linspace(0.0, 1.0, 50)[1:]:
                 advance(self.model_state, self.model_params, (f * motor)[None, :], self.model_dt, 40)
             advance(self.model_state, self.model_params, motor[None, :], self.model_dt, 1000)
-            self.tip_history = MotorHistory(self.delay + 1.0, self.control_dt)
+            self.tip_history.clear()
             self.tip_history.push(t, self.model_state[0, 2:4])
-        self.target_track: deque = deque(maxlen=5)
 
     def _predict(self, x: np.ndarray, phi_then: np.ndarray, phi_now: np.ndarray,
                  t_capture: float = 0.0, t_now: float = 0.0) -> np.ndarray:
         """Where the target seen at ``x`` (px) with the tip at ``phi_then`` appears now with the tip
         at ``phi_now`` (rad): the target, at the assumed depth, is moved on by its recent world
         velocity over the latency and re-projected from the current pose."""
-        if self.camera is None:
-            return x - self.px_per_rad * (phi_now - phi_then)
         cam, g = self.camera, self.geometry
         then = tip_pose(phi_then[0], phi_then[1], g[0], g[1])
         now = tip_pose(phi_now[0], phi_now[1], g[0], g[1])
@@ -148,7 +145,6 @@ class PIController(Controller):
         return np.full(2, cfg.hc2_slope * bend + math.radians(cfg.hc2_offset_deg))
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
-        self.history.push(t, motor)
         if self.kind == "pi-smith":
             advance(self.model_state, self.model_params, motor[None, :], self.model_dt,
                     max(1, int(round(self.control_dt / self.model_dt))))
@@ -159,7 +155,6 @@ class PIController(Controller):
         if self.kind == "pi-smith":
             x = self._predict(x, self.tip_history.at(obs.capture_time), self.tip_history.at(t), obs.capture_time, t)
         dt = self.frame_dt(obs)
-        self.x = x
         self.integrator = self._clamp_integrator(self.integrator + self.i_gain * x * dt)
         if self.kind != "pi":
             latch = np.abs(x) > self.cfg.hc_threshold_px

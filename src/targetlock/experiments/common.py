@@ -6,7 +6,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
-from ..config import ConfigError, from_dict, to_dict
+from ..config import ConfigError, from_dict
 from ..model.twin import merge, preset_overrides
 
 __all__ = ["build_config", "print_json_last"]
@@ -47,6 +47,3 @@ def print_json_last(summary: dict) -> None:
         return v
     print(json.dumps(clean(summary)), flush=True)
 
-
-def config_dict(cfg: Any) -> dict:
-    return to_dict(cfg)

@@ -21,7 +21,7 @@ from ..model.twin import TwinConfig
 from ..rig.simulated import ObservationNoise, SimulatedRig
 from .runfolder import RunFolder
 
-__all__ = ["RunConfig", "build_rig", "run_target_lock", "metrics", "plot_run", "COLUMNS", "px_per_rad"]
+__all__ = ["RunConfig", "build_rig", "run_target_lock", "metrics", "plot_run", "COLUMNS"]
 
 COLUMNS = ["t", "err_x", "err_y", "err", "obs_x", "obs_y", "obs_valid", "obs_age", "motor_x_deg", "motor_y_deg",
            "setpoint_x_deg", "setpoint_y_deg", "tip_x_deg", "tip_y_deg", "sig_x", "sig_y"]
@@ -40,13 +40,6 @@ class RunConfig:
     seed: int = param(0, lo=0, hi=2**63 - 1, doc="seed of everything random in the run")
 
 
-def px_per_rad(twin: TwinConfig) -> float:
-    """Image motion (px) per radian of tip bend near the centre: rotation plus the camera's sideways
-    travel seen at the target distance (for the tip's constant-curvature arc, L/2 per rad)."""
-    cam, e, s = twin.camera, twin.endoscope, twin.scene
-    return cam.fx * (1.0 + 0.5 * e.tip_length / s.distance)
-
-
 def build_rig(cfg: RunConfig, frame_hook=None) -> SimulatedRig:
     return SimulatedRig(cfg.twin, cfg.tracker, frame_hook=frame_hook)
 
@@ -58,7 +51,7 @@ def build_controller(cfg: RunConfig, rig):
     twin = cfg.twin
     return make_controller(cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt, control_dt=1.0 / cfg.loop.rate,
                            camera=twin.camera, tip_length=twin.endoscope.tip_length, n_elements=twin.endoscope.n_elements,
-                           latency=twin.camera.latency, px_per_rad=px_per_rad(twin), endoscope=twin.endoscope,
+                           latency=twin.camera.latency, endoscope=twin.endoscope,
                            model_dt=twin.model_dt)
 
 

@@ -18,7 +18,7 @@ from numba import njit
 
 from ..config import ConfigError, param
 
-__all__ = ["DriveParams", "drive_step", "DriveModel"]
+__all__ = ["DriveParams", "drive_step"]
 
 
 @dataclass(frozen=True)
@@ -37,12 +37,6 @@ class DriveParams:
     def max_velocity(self) -> float:
         """Velocity limit in rad/s."""
         return self.max_velocity_ticks * self.rad_per_tick
-
-    def ticks_to_rad(self, ticks: float | np.ndarray) -> float | np.ndarray:
-        return np.asarray(ticks) * self.rad_per_tick
-
-    def rad_to_ticks(self, rad: float | np.ndarray) -> np.ndarray:
-        return np.rint(np.asarray(rad) / self.rad_per_tick).astype(np.int64)
 
     @property
     def min_ticks(self) -> int:
@@ -71,33 +65,3 @@ def drive_step(theta: float, setpoint: float, dt: float, time_constant: float, m
     elif delta < -step_max:
         delta = -step_max
     return theta + delta
-
-
-class DriveModel:
-    """A pair of simulated drives (axes x, y) that accept setpoints in ticks.
-
-    Used by the simulated rig and by the simulated CiA 402 drive: both feed ticks in and read the
-    handle angle out, so the twin's drive behaves the same behind either interface.
-    """
-
-    def __init__(self, params: DriveParams, n_axes: int = 2) -> None:
-        self.params = params
-        self.angle = np.zeros(n_axes)
-        self.setpoint = np.zeros(n_axes)
-
-    def command_ticks(self, axis: int, ticks: int) -> int:
-        """Accept a setpoint in ticks, clamped to the range; returns the ticks actually applied."""
-        p = self.params
-        clamped = int(min(max(int(ticks), p.min_ticks), p.max_ticks))
-        self.setpoint[axis] = clamped * p.rad_per_tick
-        return clamped
-
-    def advance(self, dt: float) -> np.ndarray:
-        """Move both axes by ``dt`` seconds; returns the handle angles (rad)."""
-        p = self.params
-        for i in range(self.angle.size):
-            self.angle[i] = drive_step(self.angle[i], self.setpoint[i], dt, p.time_constant, p.max_velocity)
-        return self.angle
-
-    def position_ticks(self, axis: int) -> int:
-        return int(round(self.angle[axis] / self.params.rad_per_tick))

@@ -39,14 +39,11 @@ from ..config import param
 from .drives import DriveParams, drive_step
 
 __all__ = ["EndoscopeParams", "pack_params", "initial_state", "advance", "simulate", "calibrate_handle_radius", "handle_for_tip", "static_gain",
-           "STATE_HANDLE", "STATE_TIP", "STATE_RATE", "FRICTION_MODELS"]
+           "FRICTION_MODELS"]
 
 FRICTION_MODELS = ("both-angles", "own-angle")
 
-# State layout per endoscope: handle angles (2), tip angles (2), tip angular rates (2).
-STATE_HANDLE = slice(0, 2)
-STATE_TIP = slice(2, 4)
-STATE_RATE = slice(4, 6)
+# State layout per endoscope: handle angles [0:2], tip angles [2:4], tip angular rates [4:6] (rad, rad/s).
 STATE_SIZE = 6
 
 # Packed parameter layout (one row per endoscope).

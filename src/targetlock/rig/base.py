@@ -99,3 +99,9 @@ class Rig(abc.ABC):
 
     def close(self) -> None:
         """Release devices; drives end disabled."""
+
+    def __enter__(self) -> "Rig":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -51,6 +51,7 @@ class MocapObservations(ObservationSource):
         self.clock_offset = clock_offset      # monotonic time of loop time zero
         self.next_frame = 0
         self.frame_log: list[tuple[float, bool]] = []
+        self._cache: tuple[object, tuple[np.ndarray, np.ndarray, float] | None] = (None, None)
 
     def measure(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(offset px from the image centre, bending angles rad) now, or None without a usable sample."""
@@ -58,10 +59,19 @@ class MocapObservations(ObservationSource):
         return None if m is None else m[:2]
 
     def measure_with_time(self) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """Like :meth:`measure`, plus the sample's capture time (s, monotonic clock)."""
+        """Like :meth:`measure`, plus the sample's capture time (s, monotonic clock).
+
+        Computed once per motion-capture sample: the loop asks for the frame, the truth and the
+        bending angles in the same tick, and the bending fit is the costly part."""
         s = self.client.get()
         if s is None:
             return None
+        if self._cache[0] is s:
+            return self._cache[1]
+        self._cache = (s, self._compute(s))
+        return self._cache[1]
+
+    def _compute(self, s) -> tuple[np.ndarray, np.ndarray, float] | None:
         bodies = [s.rigid_body(i) for i in (self.base_id, self.tip_id, self.target_id)]
         if any(b is None or not b.usable for b in bodies):
             return None

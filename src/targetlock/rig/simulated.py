@@ -101,8 +101,6 @@ class SimulatedRig(Rig):
         self.frame_hook = frame_hook
         self.drives = SimDrives(self)
         self.observations = _LatencySource(twin.camera.latency)
-        self.frames_captured = 0
-        self.frames_valid = 0
         self.frame_log: list[tuple[float, bool]] = []
         self._settle(settle_seconds)
         self.start_camera_pose = self.camera_pose()
@@ -170,10 +168,7 @@ class SimulatedRig(Rig):
             obs = self.frame_hook(self, t, truth)
         else:
             obs = self._ideal_observation(t, truth)
-        self.frames_captured += 1
-        valid = obs is not None and obs.valid
-        self.frames_valid += int(valid)
-        self.frame_log.append((t, valid))
+        self.frame_log.append((t, obs is not None and obs.valid))
         if obs is not None:
             self.observations.line.push(t, dataclasses.replace(obs, arrival_time=t + self.twin.camera.latency))
 

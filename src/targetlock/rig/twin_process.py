@@ -32,7 +32,8 @@ __all__ = ["TwinPhysics", "serve_twin_rig"]
 class TwinPhysics:
     """Endoscope + scene of the twin, advanced by the simulated drives' handle angles (thread-safe)."""
 
-    def __init__(self, twin: TwinConfig) -> None:
+    def __init__(self, twin: TwinConfig, target_id: int) -> None:
+        self.target_id = target_id
         twin = dataclasses.replace(twin, scene=dataclasses.replace(twin.scene, start_tip_deg=(0.0, 0.0)))
         self.twin = twin
         self.sim = SimulatedRig(twin)            # settled, scene anchored at the start camera pose
@@ -63,14 +64,11 @@ class TwinPhysics:
         target = self.sim.scene.target_pose(t_scene)
         return np.eye(4), camera, {self.target_id: target}
 
-    target_id = 3
-
 
 def serve_twin_rig(rig: HardwareRigConfig, twin: TwinConfig, stop: threading.Event, *,
                    on_ready: Callable[[str], None] | None = None, mocap_rate: float = 120.0) -> None:
     """Run the twin's drives and motion capture until ``stop`` is set."""
-    physics = TwinPhysics(twin)
-    physics.target_id = rig.observations.target_body_id
+    physics = TwinPhysics(twin, rig.observations.target_body_id)
     n = rig.natnet
     server = SimNatNetServer(SimNatNetConfig(
         multicast=n.multicast, multicast_group=n.multicast_group, data_port=n.data_port, command_port=n.command_port,

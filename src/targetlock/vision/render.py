@@ -1073,7 +1073,6 @@ class Renderer:
             alpha = np.clip(0.5 + (r - dist) / s.fov_edge_px, 0.0, 1.0)
         else:
             alpha = (dist <= r).astype(float)
-        self._fov_alpha = alpha
         self._alpha8 = np.round(alpha * 255).astype(np.uint8)
         self._bbox_shape = (bh, bw)
         # Pixel regions (row spans): A the visible disc, B = A +- blur radius (rows that get
@@ -1213,10 +1212,6 @@ class Renderer:
             rel = self._plane_in_camera(interpolate_pose(cp0, cp1, fk), interpolate_pose(tp0, tp1, fk))
             out[k] = self._texel_homography(rel, 0)
         return out
-
-    def _texels_per_px(self, rel: np.ndarray) -> float:
-        """Level-0 texels per image pixel near the image centre (geometric mean of both axes)."""
-        return float(np.sqrt(abs(np.linalg.det(self._centre_jacobian(self._texel_homography(rel, 0))))))
 
     def _centre_jacobian(self, hom0: np.ndarray) -> np.ndarray:
         """2x2 d(level-0 texel) / d(pixel) at the image centre (one-pixel differences) from the

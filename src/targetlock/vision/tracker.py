@@ -358,7 +358,7 @@ class FeatureTracker(Tracker):
             ok[idx[b.sat[qi[:, 1], qi[:, 0]] | a.sat[pi[:, 1], pi[:, 0]]]] = False
         return pts[ok], _apply(b.to_frame, q[ok])
 
-    def _motion(self, src: np.ndarray, dst: np.ndarray, n_tracked: int, centre: np.ndarray):
+    def _motion(self, src: np.ndarray, dst: np.ndarray, centre: np.ndarray):
         """RANSAC affine (lens distortion and perspective make the local motion anisotropic), then
         a least-squares affine of the inliers weighted towards ``centre``. Returns (affine 3x3,
         closest similarity 3x3, inlier mask, inlier count) or None."""
@@ -513,7 +513,7 @@ class FeatureTracker(Tracker):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
-        return self._motion(ksrc, kdst, len(kf.pts), kf.target), ksrc, kdst
+        return self._motion(ksrc, kdst, kf.target), ksrc, kdst
 
     def update(self, frame_bgr: np.ndarray) -> TrackResult:
         s = self.settings
@@ -556,7 +556,7 @@ class FeatureTracker(Tracker):
         view = self._crop(frame, pred)
         # 1) chain: last accepted frame -> this frame
         src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + (pred - self._pos), s.lk_levels)
-        chain = self._motion(src, dst, len(self._prev_pts), self._pos)
+        chain = self._motion(src, dst, self._pos)
         if chain is None and not relock:
             # Unexpected motion: a second attempt seeded by the coarse shift from phase correlation
             # of the same region in both frames (or, if that seeded the first one, by no motion).
@@ -565,7 +565,7 @@ class FeatureTracker(Tracker):
                 pred = self._pos + shift
                 view = self._crop(frame, pred)
                 src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
-                chain = self._motion(src, dst, len(self._prev_pts), self._pos)
+                chain = self._motion(src, dst, self._pos)
         step = chain[1] if chain is not None else _translation(pred - self._pos)
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
