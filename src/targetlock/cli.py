@@ -38,6 +38,8 @@ def _hysteresis_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--held", type=float, nargs="+", metavar="DEG", help="held tip angles of the other axis (deg)")
     p.add_argument("--amplitudes", type=float, nargs="+", metavar="DEG", help="handle sweep amplitudes (deg)")
     p.add_argument("--speed", type=float, metavar="DEG/S", help="handle speed (deg/s)")
+    p.add_argument("--sample-rate", type=float, metavar="HZ", help="samples per second (default 200); on a rig, "
+                                                                   "setpoints sent and positions read per second")
     p.add_argument("--rig", metavar="FILE", help="sweep a rig's drives and measure the tip by motion capture, in "
                                                  "real time (default: simulate the twin)")
 
@@ -58,6 +60,8 @@ def _hysteresis(args: argparse.Namespace) -> int:
         over["amplitudes_deg"] = args.amplitudes
     if args.speed:
         over["sweep_speed_deg_s"] = args.speed
+    if args.sample_rate:
+        over["sample_rate"] = args.sample_rate
     cfg = build_config(HysteresisConfig, config_file=args.config, preset=args.preset, overrides=over)
     hw = None
     if args.rig:

@@ -98,7 +98,7 @@ def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp
 
 def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_path, capsys):
     rig = rig_file(tmp_path / "rig.toml")
-    sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", "60", "--json"]
+    sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", "60", "--sample-rate", "50", "--json"]
     with sim_rig("--rig", str(rig), "--duration", "60"):
         assert main(["hysteresis", "--rig", str(rig), "--out", str(tmp_path / "hw"), *sweep]) == 0
     hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 from ..config import ConfigError, param
 from ..model.endoscope import handle_for_tip, initial_state, pack_params, simulate
@@ -126,8 +127,9 @@ def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
     return _result(cfg, t, out[:, :, swept], out[:, :, 2 + swept], out[:, :, 2 + held], phase, n_pos)
 
 
-def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, clock=None) -> HysteresisResult:
-    """The same sweep through a rig's drives, the tip measured by the rig (motion capture), in real time.
+def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisResult:
+    """The same sweep through a rig's drives, the tip measured by the rig (motion capture), in real time,
+    sampled (setpoints sent, positions read) at ``cfg.sample_rate`` like the simulated sweep.
 
     Curves run one after the other; between them both handles return to neutral over 3 s.
     ``rig`` needs ``drives`` and ``tip_measurement() -> (angles rad, capture time s monotonic)``.
@@ -142,6 +144,7 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, c
     rpt = drives.rad_per_tick
     if not drives.homed:
         drives.home()
+    sample_rate = cfg.sample_rate
     setpoints, phase, n_pos = _program(cfg, sample_rate)
     n_t, n = setpoints.shape[:2]
     handle = np.full((n_t, n, 2), np.nan)
@@ -173,6 +176,10 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, sample_rate: float = 50.0, c
             col = tips[:, c, a]
             idx = np.where(np.isfinite(col), np.arange(n_t), 0)
             tips[:, c, a] = col[np.maximum.accumulate(idx)]
+    # Motion capture carries glitches (a sample received late, marker noise); the width is a
+    # largest gap, so one glitch would set it. A 5-sample median removes them and leaves every
+    # monotone stretch of the trace unchanged. The handle (the drives' encoders) needs none.
+    tips = median_filter(tips, size=(5, 1, 1), mode="nearest")
     swept, held = cfg.axis, 1 - cfg.axis
     t = np.arange(n_t) / sample_rate
     return _result(cfg, t, handle[:, :, swept], tips[:, :, swept], tips[:, :, held], phase, n_pos)
