@@ -5,7 +5,8 @@
     python3 dev.py test     # set up, then run the whole test suite
 
 Needs only python3 >= 3.11 and access to the package registry. The environment lives in
-``.venv`` and is reinstalled only when ``pyproject.toml`` changes.
+``.venv``; it installs the exact versions of ``requirements.lock`` (made by ``scripts/lock.py``
+from the ranges in ``pyproject.toml``) and is reinstalled only when either file changes.
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".targetlock-install-stamp"
+LOCK = ROOT / "requirements.lock"
+EXTRAS = ("test",)
 
 
 def _python() -> Path:
@@ -28,14 +31,24 @@ def _python() -> Path:
 def setup() -> Path:
     if sys.version_info < (3, 11):
         sys.exit(f"targetlock needs Python >= 3.11, this is {sys.version.split()[0]}")
-    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if not LOCK.exists():
+        sys.exit(f"{LOCK.name} is missing: run `python3 scripts/lock.py` to resolve the dependency ranges")
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + LOCK.read_bytes()).hexdigest()
     if not _python().exists():
         print(f"[dev] creating {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
     if not STAMP.exists() or STAMP.read_text() != want:
-        print("[dev] installing targetlock and its pinned dependencies", flush=True)
-        subprocess.run([str(_python()), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
-        subprocess.run([str(_python()), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
+        print(f"[dev] installing targetlock with the locked versions of {LOCK.name}", flush=True)
+        pip = [str(_python()), "-m", "pip"]
+        subprocess.run([*pip, "install", "-q", "--upgrade", "pip"], check=True)
+        subprocess.run([*pip, "install", "-q", "-r", str(LOCK)], check=True)
+        # the project itself without resolving again: every dependency comes from the lock
+        subprocess.run([*pip, "install", "-q", "--no-deps", "-e", f"{ROOT}[{','.join(EXTRAS)}]"], check=True)
+        # the lock must satisfy pyproject's ranges (and itself): a stale lock fails here, not in a test
+        check = subprocess.run([*pip, "check"], capture_output=True, text=True)
+        if check.returncode != 0:
+            sys.exit(f"[dev] {LOCK.name} does not satisfy pyproject.toml: {check.stdout.strip()}\n"
+                     "      run `python3 scripts/lock.py` and commit both files")
         STAMP.write_text(want)
     return _python()
 
