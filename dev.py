@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".targetlock-install-stamp"
 LOCK = ROOT / "requirements.lock"
-EXTRAS = ("test",)
+EXTRAS = ("test", "sweep")
 
 
 def _python() -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 from .cli import _common, command
@@ -307,6 +308,67 @@ def _vision_eval(args: argparse.Namespace) -> int:
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
     print(f"run folder: {run.path}")
+    if args.json:
+        print_json_last(summary)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- sweep
+def _sweep_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", metavar="SPEC.toml", help="sweep spec: shared [base] settings, a [grid] and/or a seeded "
+                                                     "[random] set (see docs/research.md)")
+    p.add_argument("--workers", type=int, metavar="N", help="worker processes of the local Dask cluster "
+                                                            "(default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask scheduler (tcp://host:8786) "
+                                                          "instead of a local cluster")
+    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/sweep-<time>)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
+
+
+@command("sweep", "run a grid or seeded random set of target-lock runs on Dask; one table of results")(_sweep_options)
+def _sweep(args: argparse.Namespace) -> int:
+    import time
+
+    from .config import ConfigError
+    from .experiments.common import print_json_last
+    from .experiments.runfolder import RunFolder
+    from .experiments.sweep import (ResultsTable, expand, load_spec, plot_sweep, run_cases, sweep_summary,
+                                    varied_names, write_case_configs)
+
+    if args.workers is not None and not 1 <= args.workers <= 512:
+        raise ConfigError(f"--workers = {args.workers} is out of range; allowed: [1, 512]")
+    spec = load_spec(args.spec)
+    cases = expand(spec)
+    run = RunFolder("sweep", spec, args.out)
+    names = write_case_configs(cases, run.file("cases"))
+    table = ResultsTable(run.file("results.csv"), varied_names(cases))
+    from tqdm import tqdm
+    bar = tqdm(total=len(cases), unit="run", disable=None)
+
+    def on_result(case, row):
+        table.add(case, row, names[case.index])
+        bar.update(1)
+
+    t0 = time.perf_counter()
+    try:
+        rows = run_cases(cases, scheduler=args.scheduler, workers=args.workers, on_result=on_result)
+    finally:
+        table.close()
+        bar.close()
+    wall = time.perf_counter() - t0
+    workers = args.scheduler or str(args.workers or os.cpu_count())
+    summary = sweep_summary(spec, cases, rows, wall, workers)
+    plot_sweep(cases, rows, run.file("sweep.png"))
+    summary["run_folder"] = str(run.path)
+    run.write_summary(summary)
+    print(f"sweep: {len(cases)} runs in {wall:.1f} s on {workers} worker(s), {summary['case_seconds_median']:.2f} s per "
+          f"run (median), workers busy {100 * summary['busy_fraction']:.0f} % of the time; {summary['failed']} failed")
+    for g in summary["groups"]:
+        label = " ".join(f"{k}={v}" for k, v in g.items() if "." in k or k == "preset") or "all"
+        print(f"  {label:<32} rms median {g['rms_px_median']:7.1f}  p95 {g['rms_px_p95']:7.1f}  worst "
+              f"{g['rms_px_worst']:7.1f} px; peak median {g['peak_px_median']:7.1f} px; left image in "
+              f"{g['left_image_cases']}/{g['cases']}")
+    print(f"run folder: {run.path}  (table: {run.file('results.csv')}, plot: {run.file('sweep.png')})")
     if args.json:
         print_json_last(summary)
     return 0
