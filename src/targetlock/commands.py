@@ -372,3 +372,17 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.json:
         print_json_last(summary)
     return 0
+
+
+# --------------------------------------------------------------------------------------------- export
+def _export_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_folder", metavar="RUN_FOLDER", help="a run folder (timeseries.csv + config.toml)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run.mcap")
+
+
+@command("export", "write run.mcap (Foxglove) for a run folder recorded before MCAP logging")(_export_options)
+def _export(args: argparse.Namespace) -> int:
+    from .recording.run_mcap import export_run_folder
+    out = export_run_folder(args.run_folder, overwrite=args.overwrite)
+    print(f"wrote {out} ({out.stat().st_size / 1024:.0f} kB): open it in Foxglove (docs/research.md)")
+    return 0

@@ -1,0 +1,126 @@
+"""run.mcap read back with the mcap reader: schemas, counts, monotonic times, values equal to the CSV,
+poses consistent with the recorded image error, and a killed writer keeps what it flushed."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import NonSeekingReader, make_reader
+
+from targetlock.cli import main
+from targetlock.model.camera import CameraParams, project
+from targetlock.model.kinematics import tip_pose
+
+
+def _messages(path, topic):
+    with open(path, "rb") as fh:
+        return [(m.log_time, json.loads(m.data)) for _, _, m in make_reader(fh).iter_messages(topics=[topic])]
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    run = tmp_path_factory.mktemp("run") / "r"
+    assert main(["run", "--seconds", "4", "--path", "ellipse", "--out", str(run)]) == 0
+    assert main(["export", str(run)]) == 0
+    return run
+
+
+def test_export_has_foxglove_schemas_and_one_message_per_row(exported):
+    csv = np.loadtxt(exported / "timeseries.csv", delimiter=",", skiprows=1)
+    with open(exported / "run.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        schemas = {s.name for s in summary.schemas.values()}
+        counts = {c.topic: summary.statistics.channel_message_counts[i] for i, c in summary.channels.items()}
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert {"foxglove.FrameTransform", "foxglove.CameraCalibration", "targetlock.timeseries"} <= schemas
+    assert counts["/timeseries"] == len(csv)
+    assert counts["/tf"] == 2 * len(csv)                     # base → tip and base → target each tick
+    assert meta["config"]["config.toml"] == (exported / "config.toml").read_text()
+
+
+def test_rows_equal_the_csv_with_monotonic_times(exported):
+    header = (exported / "timeseries.csv").read_text().splitlines()[0].split(",")
+    csv = np.loadtxt(exported / "timeseries.csv", delimiter=",", skiprows=1)
+    msgs = _messages(exported / "run.mcap", "/timeseries")
+    times = np.array([t for t, _ in msgs])
+    assert np.all(np.diff(times) > 0)
+    np.testing.assert_allclose(times / 1e9, csv[:, 0], atol=1e-9)
+    for (_, m), row in zip(msgs, csv):
+        for c, v in zip(header, row):
+            assert (m[c] is None and not math.isfinite(v)) or m[c] == pytest.approx(v, rel=1e-12, abs=1e-12)
+
+
+def test_poses_reproduce_the_recorded_image_error(exported):
+    """Projecting the target through the recorded base→tip and base→target poses gives the error the
+    CSV recorded: the 3D scene in Foxglove shows what the camera saw."""
+    header = (exported / "timeseries.csv").read_text().splitlines()[0].split(",")
+    csv = np.loadtxt(exported / "timeseries.csv", delimiter=",", skiprows=1)
+    tf = _messages(exported / "run.mcap", "/tf")
+    tips = {t: m for t, m in tf if m["child_frame_id"] == "tip"}
+    targets = {t: m for t, m in tf if m["child_frame_id"] == "target"}
+    cam = CameraParams()
+    from scipy.spatial.transform import Rotation
+    checked = 0
+    for row in csv[::25]:
+        ns = int(round(row[0] * 1e9))
+        tip, target = tips[ns], targets[ns]
+        q = tip["rotation"]
+        r = Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]).as_matrix()
+        p = np.array([target["translation"][k] for k in "xyz"]) - np.array([tip["translation"][k] for k in "xyz"])
+        px = project(r.T @ p, cam) - [cam.cx, cam.cy]
+        err = row[[header.index("err_x"), header.index("err_y")]]
+        if np.all(np.isfinite(err)):
+            np.testing.assert_allclose(px, err, atol=0.05)
+            checked += 1
+        # and base → tip is the chained kinematics of the recorded tip angles
+        pose = tip_pose(math.radians(row[header.index("tip_x_deg")]), math.radians(row[header.index("tip_y_deg")]),
+                        0.12, 30)
+        np.testing.assert_allclose(r, pose[:3, :3], atol=1e-9)
+    assert checked > 5
+
+
+def test_export_refuses_to_overwrite_and_non_run_folders(exported, tmp_path, capsys):
+    before = (exported / "run.mcap").read_bytes()
+    assert main(["export", str(exported)]) == 2
+    assert "exists already" in capsys.readouterr().err
+    assert (exported / "run.mcap").read_bytes() == before
+    assert main(["export", str(tmp_path)]) == 2
+    assert "not a run folder" in capsys.readouterr().err
+
+
+def test_a_killed_writer_keeps_what_it_flushed(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = textwrap.dedent(f"""
+        import sys, time
+        from targetlock.recording import McapLog
+        log = McapLog({str(path)!r}, flush_seconds=0.05)
+        for k in range(200):
+            log.row("/timeseries", k * 0.02, ["t", "err"], [k * 0.02, float(k)])
+        log.flush()
+        print("flushed", flush=True)
+        time.sleep(60)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "flushed"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        proc.kill()
+    got = []
+    with open(path, "rb") as fh:
+        try:
+            for _, _, m in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                got.append(json.loads(m.data)["err"])
+        except Exception:           # the file ends where the process died: no footer
+            pass
+    assert got == [float(k) for k in range(200)]
