@@ -1,0 +1,18 @@
+"""Gymnasium environments of targetlock; importing this module registers them.
+
+    import gymnasium, targetlock.gym
+    env = gymnasium.make("targetlock/TargetLock-v0")                 # randomised scopes, ideal tracker
+    env = gymnasium.make("targetlock/TargetLock-v0", observation="image")   # rendered frames
+
+See :class:`targetlock.gym.env.TargetLockEnv` for spaces, reward and randomisation.
+"""
+from gymnasium.envs.registration import register, registry
+
+from .env import TargetLockEnv, random_case
+
+__all__ = ["TargetLockEnv", "random_case", "ENV_ID"]
+
+ENV_ID = "targetlock/TargetLock-v0"
+
+if ENV_ID not in registry:
+    register(id=ENV_ID, entry_point="targetlock.gym.env:TargetLockEnv", disable_env_checker=False)
