@@ -71,8 +71,10 @@ def test_poses_arrive_within_float32_precision(multicast, version):
         m = sensor.read()
         assert m is not None
         assert np.allclose(m.angles, PHI, atol=2e-6)
-        assert sample.latency == pytest.approx(0.004, abs=1e-6)
-        assert sample.capture_time == pytest.approx(sample.received_at - 0.004)
+        assert 0.004 <= sample.latency < 0.1         # the frame leaves >= 4 ms after mid-exposure
+        # the mid-exposure stamp mapped through the echo clock sync is the true exposure time
+        assert sample.capture_time == pytest.approx(srv.ticks_to_local(sample.frame.camera_mid_exposure), abs=2e-3)
+        assert sample.capture_time < sample.received_at
         assert client.stats.malformed == 0
         if not multicast:
             assert srv.stats.connects == 1
@@ -177,8 +179,3 @@ def test_connect_timeout_without_server():
     assert time.monotonic() - t0 < 1.5
 
 
-def test_explicit_version_needs_no_server_info():
-    srv, cfg = pair(rate_hz=200, version="3.1", client_version="3.1")
-    with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 3, 2.0)
-        assert client.get().frame.version == (3, 1)
