@@ -12,7 +12,7 @@ the scheduled exposure time on the server's high-resolution clock (which starts 
 s, unrelated to the client's clock), the data-received stamp 2 ms later, and the frame leaves
 ``latency`` s after mid-exposure with the transmit stamp. Options exercise clients: seeded jitter
 (each frame delayed by U(0, jitter)), packet loss, a one-way network ``transit_delay`` (frames and
-command traffic, both ways), a server that ignores version requests (``version_requests = False``)
+command traffic, both ways), a server that ignores version requests (``version_requests``)
 and one that answers only connect and keep-alive (``motive_replies = False``, as before Motive 2).
 
 The pose source is a callback returning ``(base, tip)`` 4x4 poses in metres (world frame), or
@@ -68,7 +68,9 @@ class SimNatNetConfig:
     latency: float = param(0.004, unit="s", lo=0.0, hi=1.0, doc="simulated mid-exposure to transmit time")
     transit_delay: float = param(0.0, unit="s", lo=0.0, hi=1.0, doc="one-way network delay of every packet, both ways")
     clock_offset: float = param(1000.0, unit="s", lo=0.0, hi=1e6, doc="the server clock's reading at start (s)")
-    version_requests: bool = param(True, doc="honour the connect packet's requested version and 'Bitstream,M.m'")
+    version_requests: str = param("both", choices=("both", "bitstream", "none"),
+                                  doc="which version requests are honoured: the connect packet's requested version "
+                                      "and the 'Bitstream,M.m' command, only the command, or none")
     motive_replies: bool = param(True, doc="answer discovery, echo, model definitions, FrameRate and Bitstream "
                                            "(off: only connect, keep-alive and Ping)")
     base_body_id: int = param(1, lo=0, hi=1000000)
@@ -229,8 +231,10 @@ class SimNatNetServer:
             ids += sorted(poses[2])
         return [RigidBodyDescription(self.names.get(i, f"RigidBody{i}"), i) for i in ids]
 
-    def _switch_version(self, version: tuple[int, int] | None) -> bool:
-        if version is None or not self.config.version_requests or version not in _SUPPORTED:
+    def _switch_version(self, version: tuple[int, int] | None, by_connect: bool = False) -> bool:
+        allowed = self.config.version_requests == "both" or (self.config.version_requests == "bitstream"
+                                                             and not by_connect)
+        if version is None or not allowed or version not in _SUPPORTED:
             return False
         self.version = version
         return True
@@ -258,7 +262,7 @@ class SimNatNetServer:
             with self._clients_lock:
                 self._clients[addr] = time.monotonic()
             try:
-                self._switch_version(parse_connect(payload))
+                self._switch_version(parse_connect(payload), by_connect=True)
             except NatNetParseError:
                 pass
             reply = encode_server_info(self.server_info())
@@ -284,7 +288,7 @@ class SimNatNetServer:
                 reply = encode_packet(NAT_RESPONSE, b"Pong\0")
             elif command == "FrameRate" and full:
                 reply = encode_packet(NAT_RESPONSE, struct.pack("<f", self.config.rate_hz))
-            elif command == "Bitstream" and full and self.config.version_requests:
+            elif command == "Bitstream" and full and self.config.version_requests != "none":
                 try:
                     ok = self._switch_version(parse_version(arg))
                 except ValueError:
@@ -355,7 +359,7 @@ class SimNatNetServer:
                 else:
                     packet = self.encode_frame(frame_number, exposure)
                     for dest in self._destinations():
-                        self._later(lambda dest=dest: self._sendto(self._out, packet, dest))
+                        self._later(lambda dest=dest, packet=packet: self._sendto(self._out, packet, dest))
                     self.stats.sent += 1
                 exposure += period
                 if exposure < time.monotonic() - 10 * period:      # far behind (a stalled host): resynchronise
