@@ -27,18 +27,27 @@ suffix                 uint32 timecode, uint32 timecode sub-frame, float64 times
 From 4.1 on every section carries its byte size, so sections we do not need are skipped by size;
 before 4.1 they are walked by their counts. Every count and size is checked against the bytes
 left, so a truncated or corrupted packet raises :class:`NatNetParseError` (counted as malformed by
-the client and skipped), never an unrelated exception. The precision timestamp of NatNet 4.0
-streams is recognised by the length of the suffix (the reference clients disagree on 4.0).
+the client and skipped), never an unrelated exception. The layout follows the stream version only:
+the precision timestamp is read from 4.1 on (as the official 4.x C++ client does), and anything
+after the suffix other than the 4-byte end tag is an error.
 
-The command port handshake: the client sends ``NAT_CONNECT`` (0) with its name and NatNet
-version; the server answers ``NAT_SERVERINFO`` (1): application name (256 bytes), application
-version and NatNet version (4 bytes each), then (NatNet 3+) the high-resolution clock frequency
-(uint64, Hz), data port (uint16), multicast flag (uint8) and multicast group (4 bytes). With the
-clock frequency, latency = (transmit - mid-exposure) / frequency is the time from the cameras'
-mid-exposure to the frame leaving Motive.
+Command port (:meth:`NatNetClient.start`): the client sends ``NAT_CONNECT`` (0) with its name, its
+NatNet version and the connection options (the bit-stream version it asks for); the server answers
+``NAT_SERVERINFO`` (1): application name (256 bytes), application version and NatNet version (4
+bytes each), then (NatNet 3+) the high-resolution clock frequency (uint64, Hz), data port (uint16),
+multicast flag (uint8) and multicast group (4 bytes). If the server streams another version than
+the configured one, the client sends the SDK's ``NAT_REQUEST`` "Bitstream,M.m" and needs the answer
+int32 0, else it refuses to start. It then requests the model definitions (``NAT_REQUEST_MODELDEF``
+→ ``NAT_MODELDEF``) to find the configured rigid bodies by id or asset name, and syncs the clocks
+with ``NAT_ECHOREQUEST`` (uint64 stamp) → ``NAT_ECHORESPONSE`` (the stamp, the server's clock in
+ticks when the request arrived): :class:`ClockSync` keeps the offset of the echo with the smallest
+round trip, so Motive's mid-exposure stamp maps to the local clock including network transit.
+latency = (transmit - mid-exposure) / frequency is Motive's own part of it.
 
 :class:`NatNetClient` receives in its own thread (multicast joined on the configured local
-interface, or unicast on the command socket with keep-alives) and hands the control loop only the
+interface, or unicast on the command socket with keep-alives), drops packets from any address but
+the server's, reports frames that parse to nonsense for the expected version (configured bodies
+absent, impossible timestamps or positions) as malformed, and hands the control loop only the
 newest sample through :class:`LatestSample`.
 """
 from __future__ import annotations
