@@ -109,7 +109,7 @@ def test_newest_only_handoff_to_a_slow_consumer():
 
 def test_packet_loss_is_counted():
     received = []
-    srv, cfg = pair(rate_hz=400, loss=0.2, seed=3, max_frames=240)
+    srv, cfg = pair(rate_hz=400, loss=0.2, seed=3, max_frames=400)
     client = NatNetClient(cfg, on_sample=lambda s: received.append(s.frame.frame_number))
     with srv, client:
         assert srv.finished.wait(5.0)
@@ -124,13 +124,13 @@ def test_packet_loss_is_counted():
 
 def test_jitter_keeps_frames_flowing_and_accounted():
     received = []
-    srv, cfg = pair(rate_hz=200, jitter=0.004, seed=1, max_frames=80)
+    srv, cfg = pair(rate_hz=200, jitter=0.004, seed=1, max_frames=200)
     client = NatNetClient(cfg, on_sample=lambda s: received.append((time.monotonic(), s.frame.frame_number)))
     with srv, client:
         assert srv.finished.wait(5.0)
         time.sleep(0.05)
     st = client.stats
-    assert st.frames + st.lost + st.out_of_order >= len(received) > 60
+    assert st.frames + st.lost + st.out_of_order >= len(received) > 100
     gaps = np.diff([t for t, _ in received])
     assert gaps.std() > 0.0005                  # arrival times really jitter
 
@@ -161,10 +161,10 @@ def test_untracked_bodies_give_no_angles():
 
 
 def test_stale_sample_is_not_returned():
-    srv, cfg = pair(rate_hz=200, max_frames=10)
+    srv, cfg = pair(rate_hz=200)
     with srv, NatNetClient(cfg) as client:
-        assert srv.finished.wait(3.0)
-        assert wait_for(lambda: client.get() is not None, 1.0)
+        assert wait_for(lambda: client.get() is not None, 2.0)
+        srv.stop()                                 # Motive stops streaming
         time.sleep(cfg.max_sample_age + 0.02)
         assert client.get() is None
         assert client.latest.get() is not None

@@ -66,7 +66,7 @@ def world():
     srv = SimNatNetServer(SimNatNetConfig(command_port=0, data_port=port, multicast=False, rate_hz=200.0),
                           scope.poses, names={3: "Target"})
     bus = CanBusConfig(interface="virtual", channel=f"tl-test-{uuid.uuid4().hex[:12]}")
-    can = CanopenRigConfig(bus=bus)
+    can = CanopenRigConfig(bus=bus, sdo_timeout=1.0, heartbeat_timeout=1.0)   # generous: a loaded test machine
     sims = SimDriveSet(can.bus, can.node_ids, can.drive_params())
     sims.start()
     srv.start()

@@ -805,6 +805,7 @@ class NatNetClient:
         self._echo_sent: dict[int, float] = {}
         self._echo_seq = 0
         self._last_warning = -math.inf
+        self._negotiating = False
 
     # ---------------------------------------------------------------- life cycle
 
@@ -827,6 +828,7 @@ class NatNetClient:
             data.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
             self._data = data
         self._stop.clear()
+        self._negotiating = True        # frames wait until the version and the bodies are settled
         self._thread = threading.Thread(target=self._run, name="natnet-receive", daemon=True)
         self._thread.start()
         try:
@@ -834,6 +836,8 @@ class NatNetClient:
         except BaseException:
             self.stop()
             raise
+        finally:
+            self._negotiating = False
         return self
 
     def _handshake(self) -> None:
@@ -1038,7 +1042,7 @@ class NatNetClient:
         try:
             msg_id, payload = parse_packet(packet)
             if msg_id == NAT_FRAMEOFDATA:
-                if self.version is None:
+                if self.version is None or self._negotiating:
                     st.other_messages += 1      # cannot parse before the version is known
                     return None
                 frame = parse_frame_of_data(payload, self.version)
