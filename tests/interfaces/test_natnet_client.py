@@ -14,7 +14,7 @@ from targetlock.interfaces.natnet import LatestSample, NatNetClient, NatNetConfi
 from targetlock.interfaces.sim_natnet import SimNatNetConfig, SimNatNetServer
 from targetlock.model.kinematics import tip_pose
 
-from iface_helpers import free_udp_port
+from iface_helpers import free_udp_port, wait_for
 
 PHI = (0.31, -0.22)
 
@@ -39,15 +39,6 @@ def pair(multicast=True, version="4.1", client_version="auto", **server_kw):
                                           **server_kw), source)
     cfg = NatNetConfig(command_port=srv.command_port, data_port=port, multicast=multicast, version=client_version)
     return srv, cfg
-
-
-def wait_for(pred, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
 
 
 @pytest.mark.parametrize("multicast", [True, False], ids=["multicast", "unicast"])
