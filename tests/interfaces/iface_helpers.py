@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import socket
+import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import replace
@@ -14,6 +15,16 @@ from targetlock.interfaces.sim_cia402 import SimDriveSet
 def virtual_bus() -> CanBusConfig:
     """A virtual CAN bus of its own (unique channel name), so tests never hear each other."""
     return CanBusConfig(interface="virtual", channel=f"tl-test-{uuid.uuid4().hex[:12]}")
+
+
+def wait_for(pred, timeout: float) -> bool:
+    """Poll ``pred`` every 5 ms until it holds or ``timeout`` s pass; its final value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
 
 
 def free_udp_port() -> int:

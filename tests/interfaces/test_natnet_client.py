@@ -14,7 +14,7 @@ from targetlock.interfaces.natnet import LatestSample, NatNetClient, NatNetConfi
 from targetlock.interfaces.sim_natnet import SimNatNetConfig, SimNatNetServer
 from targetlock.model.kinematics import tip_pose
 
-from iface_helpers import free_udp_port
+from iface_helpers import free_udp_port, wait_for
 
 PHI = (0.31, -0.22)
 
@@ -41,15 +41,6 @@ def pair(multicast=True, version="4.1", client_version="auto", **server_kw):
     return srv, cfg
 
 
-def wait_for(pred, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
-
-
 @pytest.mark.parametrize("multicast", [True, False], ids=["multicast", "unicast"])
 @pytest.mark.parametrize("version", ["3.1", "4.0", "4.1"])
 def test_poses_arrive_within_float32_precision(multicast, version):
@@ -71,8 +62,10 @@ def test_poses_arrive_within_float32_precision(multicast, version):
         m = sensor.read()
         assert m is not None
         assert np.allclose(m.angles, PHI, atol=2e-6)
-        assert sample.latency == pytest.approx(0.004, abs=1e-6)
-        assert sample.capture_time == pytest.approx(sample.received_at - 0.004)
+        assert 0.004 <= sample.latency < 0.1         # the frame leaves >= 4 ms after mid-exposure
+        # the mid-exposure stamp mapped through the echo clock sync is the true exposure time
+        assert sample.capture_time == pytest.approx(srv.ticks_to_local(sample.frame.camera_mid_exposure), abs=2e-3)
+        assert sample.capture_time < sample.received_at
         assert client.stats.malformed == 0
         if not multicast:
             assert srv.stats.connects == 1
@@ -107,7 +100,7 @@ def test_newest_only_handoff_to_a_slow_consumer():
 
 def test_packet_loss_is_counted():
     received = []
-    srv, cfg = pair(rate_hz=400, loss=0.2, seed=3, max_frames=240)
+    srv, cfg = pair(rate_hz=400, loss=0.2, seed=3, max_frames=400)
     client = NatNetClient(cfg, on_sample=lambda s: received.append(s.frame.frame_number))
     with srv, client:
         assert srv.finished.wait(5.0)
@@ -122,13 +115,13 @@ def test_packet_loss_is_counted():
 
 def test_jitter_keeps_frames_flowing_and_accounted():
     received = []
-    srv, cfg = pair(rate_hz=200, jitter=0.004, seed=1, max_frames=80)
+    srv, cfg = pair(rate_hz=200, jitter=0.004, seed=1, max_frames=200)
     client = NatNetClient(cfg, on_sample=lambda s: received.append((time.monotonic(), s.frame.frame_number)))
     with srv, client:
         assert srv.finished.wait(5.0)
         time.sleep(0.05)
     st = client.stats
-    assert st.frames + st.lost + st.out_of_order >= len(received) > 60
+    assert st.frames + st.lost + st.out_of_order >= len(received) > 100
     gaps = np.diff([t for t, _ in received])
     assert gaps.std() > 0.0005                  # arrival times really jitter
 
@@ -159,10 +152,10 @@ def test_untracked_bodies_give_no_angles():
 
 
 def test_stale_sample_is_not_returned():
-    srv, cfg = pair(rate_hz=200, max_frames=10)
+    srv, cfg = pair(rate_hz=200)
     with srv, NatNetClient(cfg) as client:
-        assert srv.finished.wait(3.0)
-        assert wait_for(lambda: client.get() is not None, 1.0)
+        assert wait_for(lambda: client.get() is not None, 2.0)
+        srv.stop()                                 # Motive stops streaming
         time.sleep(cfg.max_sample_age + 0.02)
         assert client.get() is None
         assert client.latest.get() is not None
@@ -177,8 +170,3 @@ def test_connect_timeout_without_server():
     assert time.monotonic() - t0 < 1.5
 
 
-def test_explicit_version_needs_no_server_info():
-    srv, cfg = pair(rate_hz=200, version="3.1", client_version="3.1")
-    with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 3, 2.0)
-        assert client.get().frame.version == (3, 1)

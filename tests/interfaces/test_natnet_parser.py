@@ -71,14 +71,28 @@ def test_handmade_frame_layout(version):
     assert f.precision_timestamp == ((1700000000, 123) if version >= (4, 1) else None)
 
 
-def test_natnet_40_precision_timestamp_is_recognised_by_length():
-    base = handmade_frame((4, 0))
-    _, payload = parse_packet(base)
-    assert parse_frame_of_data(payload, (4, 0)).precision_timestamp is None
+def test_natnet_40_frame_layout_follows_the_version_not_the_length():
+    """Item 14: a 4.0 frame never carries the precision timestamp (as the official 4.x client reads
+    it); bytes left over after the suffix other than the end tag are an error, not a guess."""
+    _, payload = parse_packet(handmade_frame((4, 0)))
     body = bytes(payload)
+    assert parse_frame_of_data(body, (4, 0)).precision_timestamp is None
+    assert parse_frame_of_data(body[:-4], (4, 0)).tracked_models_changed        # without the end tag
+    # a frame with a precision stamp inserted: the old parser took it from the suffix length
     with_prec = body[:-6] + struct.pack("<II", 7, 8) + body[-6:]
-    f = parse_frame_of_data(with_prec, (4, 0))
-    assert f.precision_timestamp == (7, 8) and f.tracked_models_changed
+    with pytest.raises(NatNetParseError, match="after its suffix"):
+        parse_frame_of_data(with_prec, (4, 0))
+    # cut by 6 bytes (header-consistent): the old parser read the frame flags from the stamp
+    with pytest.raises(NatNetParseError):
+        parse_frame_of_data(with_prec[:-6], (4, 0))
+    for extra in (1, 2, 3, 5, 8):
+        with pytest.raises(NatNetParseError):
+            parse_frame_of_data(body + bytes(extra), (4, 0))
+    # a 4.1 frame must carry the stamp: cut it out and the frame is refused
+    _, p41 = parse_packet(handmade_frame((4, 1)))
+    p41 = bytes(p41)
+    with pytest.raises(NatNetParseError):
+        parse_frame_of_data(p41[:-14] + p41[-6:], (4, 1))
 
 
 def test_version_2_is_refused():

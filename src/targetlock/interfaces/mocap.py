@@ -109,13 +109,23 @@ class MocapBendingSensor:
         self.base_correction = np.eye(3) if base_correction is None else np.asarray(base_correction, dtype=float)
         self.tip_correction = np.eye(3) if tip_correction is None else np.asarray(tip_correction, dtype=float)
 
-    def calibrate_straight(self, sample: MocapSample) -> None:
-        """Set the tip correction so that ``sample`` (bending section straight) reads (0, 0)."""
+    def calibrate_straight(self, sample: MocapSample, max_angle: float | None = None) -> None:
+        """Set the tip correction so that ``sample`` (bending section straight) reads (0, 0).
+
+        ``max_angle`` (rad): refuse (ValueError) when the tip reads further than this from straight
+        before the calibration — the section is bent, or the wrong bodies are configured.
+        """
         base, tip = sample.rigid_body(self.base_id), sample.rigid_body(self.tip_id)
         if base is None or tip is None or not base.usable or not tip.usable:
             raise ValueError("calibration sample lacks a tracked base or tip rigid body")
         rb = quaternion_to_rotation(base.orientation) @ self.base_correction
         rt = quaternion_to_rotation(tip.orientation)
+        if max_angle is not None:
+            z = (rb.T @ rt)[:, 2]                    # tip optical axis in the base frame
+            off = float(np.arccos(np.clip(z[2], -1.0, 1.0)))
+            if off > max_angle:
+                raise ValueError(f"the tip's axis is {np.degrees(off):.1f} deg from the base's (at most "
+                                 f"{np.degrees(max_angle):.1f} allowed): straighten the bending section")
         self.tip_correction = rt.T @ rb
 
     def angles(self, sample: MocapSample) -> np.ndarray | None:

@@ -24,6 +24,7 @@ class ObservationSourceConfig:
                       doc="'mocap': the target rigid body projected into the tip camera (validation; the twin in "
                           "another process); 'camera': endoscope frames through the tracker")
     target_body_id: int = param(3, lo=0, hi=1000000, doc="Motive id of the target's rigid body (kind = 'mocap')")
+    target_body_name: str = param("", doc="Motive asset name of the target's rigid body (overrides target_body_id)")
     device: str = param("0", doc="OpenCV capture device index, or a video file (kind = 'camera')")
     tracker: str = param("feature", choices=("feature", "marker"), doc="tracker for kind = 'camera'")
     window_px: int = param(96, unit="px", lo=8, hi=512, doc="target window selected at the image centre (kind = 'camera')")

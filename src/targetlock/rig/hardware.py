@@ -12,6 +12,12 @@ Observation sources:
 
 Times: the loop's clock (s since the loop started) for observations; the NatNet client's samples
 carry monotonic times, converted with the offset taken at start.
+
+Start-up: the NatNet client checks that Motive streams the base, tip and (``mocap`` observations)
+target bodies, by id or asset name. With ``natnet.calibrate_straight`` the tip body's orientation
+is taken as the straight camera frame in :meth:`HardwareRig.start_clock`, i.e. right after homing,
+when the handles are at home and the bending section is straight; the correction then applies to
+the measured bending angles and to the camera frame of the projected target.
 """
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ import time
 import numpy as np
 
 from ..interfaces.cia402 import CanopenDrives
-from ..interfaces.mocap import quaternion_to_rotation
+from ..interfaces.mocap import MocapBendingSensor, quaternion_to_rotation
 from ..interfaces.natnet import NatNetClient
 from ..interfaces.rigfile import HardwareRigConfig
 from ..interfaces.safety import SafeDrives
@@ -29,7 +35,10 @@ from ..model.camera import CameraParams, LatencyLine, project, world_to_camera
 from ..model.kinematics import bending_angles_from_poses
 from .base import Observation, ObservationSource, Rig
 
-__all__ = ["HardwareRig", "MocapObservations", "pose_of"]
+__all__ = ["HardwareRig", "MocapObservations", "pose_of", "calibrate_straight", "CALIBRATION_WAIT_S"]
+
+CALIBRATION_WAIT_S = 1.0
+"""Wait this long for a sample with base and tip tracked for the straight calibration (s)."""
 
 
 def pose_of(body) -> np.ndarray:
@@ -49,6 +58,8 @@ class MocapObservations(ObservationSource):
         self.base_id, self.tip_id, self.target_id = base_id, tip_id, target_id
         self.line = LatencyLine(camera.latency)
         self.clock_offset = clock_offset      # monotonic time of loop time zero
+        self.tip_correction = np.eye(3)
+        """Tip body frame -> camera frame (3x3), from :func:`calibrate_straight`."""
         self.next_frame = 0
         self.frame_log: list[tuple[float, bool]] = []
         self._cache: tuple[object, tuple[np.ndarray, np.ndarray, float] | None] = (None, None)
@@ -76,6 +87,7 @@ class MocapObservations(ObservationSource):
         if any(b is None or not b.usable for b in bodies):
             return None
         base, tip, target = (pose_of(b) for b in bodies)
+        tip[:3, :3] = tip[:3, :3] @ self.tip_correction
         cam_in_base = np.linalg.inv(base) @ tip
         target_in_base = (np.linalg.inv(base) @ target)[:3, 3]
         px = project(world_to_camera(cam_in_base, target_in_base), self.camera)
@@ -98,6 +110,31 @@ class MocapObservations(ObservationSource):
         return [item for _, item in self.line.pop_ready(now)]
 
 
+def calibrate_straight(client: NatNetClient, observations: MocapObservations, max_angle: float,
+                       wait: float = CALIBRATION_WAIT_S) -> np.ndarray:
+    """Take the newest sample as the straight bending section: the tip body's orientation becomes the
+    camera frame (its correction is returned and set on ``observations``). Raises RuntimeError with
+    what to do when no sample has both bodies tracked or the tip reads more than ``max_angle`` rad
+    from straight."""
+    sensor = MocapBendingSensor(client, observations.base_id, observations.tip_id)
+    deadline = time.monotonic() + wait
+    while True:
+        sample = client.get()
+        if sample is not None and sensor.angles(sample) is not None:
+            break
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"straight calibration: no motion-capture sample with the base (id {sensor.base_id}) and "
+                               f"tip (id {sensor.tip_id}) bodies tracked within {wait:g} s; check Motive")
+        time.sleep(0.005)
+    try:
+        sensor.calibrate_straight(sample, max_angle=max_angle)
+    except ValueError as exc:
+        raise RuntimeError(f"straight calibration refused: {exc} (or raise natnet.calibrate_max_angle, or set "
+                           f"natnet.calibrate_straight = false)") from None
+    observations.tip_correction = sensor.tip_correction
+    return sensor.tip_correction
+
+
 class HardwareRig(Rig):
     """Drives on CANopen (behind :class:`SafeDrives`), NatNet and an observation source."""
 
@@ -107,21 +144,30 @@ class HardwareRig(Rig):
         # Load the JIT-compiled kinematics now, not in the loop's first tick (~0.3 s).
         bending_angles_from_poses(np.eye(4), np.eye(4))
         self._t0 = time.monotonic()
-        self.client = NatNetClient(config.natnet)
-        self.client.start()
-        inner = CanopenDrives(config.can)
-        self.drives = SafeDrives(inner, config.safety, clock=lambda: time.monotonic() - self._t0)
         obs = config.observations
+        extra = {"target": (obs.target_body_name, obs.target_body_id)} if obs.kind == "mocap" else {}
+        self.client = NatNetClient(config.natnet, extra_bodies=extra)
+        self.client.start()         # refuses to start when Motive lacks a configured body
+        try:
+            inner = CanopenDrives(config.can)
+        except BaseException:
+            self.client.stop()
+            raise
+        self.drives = SafeDrives(inner, config.safety, clock=lambda: time.monotonic() - self._t0)
+        ids = self.client.body_ids
         if obs.kind == "mocap":
-            self.observations = MocapObservations(self.client, camera, base_id=config.natnet.base_body_id,
-                                                  tip_id=config.natnet.tip_body_id, target_id=obs.target_body_id,
-                                                  clock_offset=self._t0)
+            self.observations = MocapObservations(self.client, camera, base_id=ids["base"], tip_id=ids["tip"],
+                                                  target_id=ids["target"], clock_offset=self._t0)
         else:
             from ..vision.live import CameraObservations
             self.observations = CameraObservations(obs, camera)
 
     def start_clock(self) -> None:
-        """Loop time zero is now (called by the loop right after homing)."""
+        """Loop time zero is now (called by the loop right after homing). With
+        ``natnet.calibrate_straight`` the straight calibration happens here: the drives are at home."""
+        n = self.config.natnet
+        if n.calibrate_straight and isinstance(self.observations, MocapObservations):
+            calibrate_straight(self.client, self.observations, n.calibrate_max_angle)
         self._t0 = time.monotonic()
         if isinstance(self.observations, MocapObservations):
             self.observations.clock_offset = self._t0

@@ -72,8 +72,9 @@ def serve_twin_rig(rig: HardwareRigConfig, twin: TwinConfig, stop: threading.Eve
     n = rig.natnet
     server = SimNatNetServer(SimNatNetConfig(
         multicast=n.multicast, multicast_group=n.multicast_group, data_port=n.data_port, command_port=n.command_port,
-        server_ip=n.server_ip, rate_hz=mocap_rate, base_body_id=n.base_body_id, tip_body_id=n.tip_body_id),
-        physics.poses)
+        server_ip=n.server_ip, rate_hz=mocap_rate, base_body_id=n.base_body_id, tip_body_id=n.tip_body_id,
+        base_name=n.base_body_name or "EndoscopeBase", tip_name=n.tip_body_name or "EndoscopeTip"),
+        physics.poses, names={rig.observations.target_body_id: rig.observations.target_body_name or "Target"})
     server.start()
 
     def ready(sims: SimDriveSet) -> None:
