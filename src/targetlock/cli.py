@@ -75,11 +75,13 @@ def _hysteresis(args: argparse.Namespace) -> int:
             res = run_sweep_on_rig(cfg, rig)
     else:
         res = run_sweep(cfg)
-    with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle"]) as ts:
+    with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle",
+                         "held_handle_deg"]) as ts:
         for c, held in enumerate(cfg.held_angles_deg):
             n = res.time.size
             ts.write_many(np.column_stack([res.time, np.full(n, c), np.full(n, held), np.degrees(res.handle[:, c]),
-                                           np.degrees(res.tip[:, c]), np.degrees(res.held_tip[:, c]), res.phase]))
+                                           np.degrees(res.tip[:, c]), np.degrees(res.held_tip[:, c]), res.phase,
+                                           np.degrees(res.held_handle[:, c])]))
     plot(res, cfg, run.file("hysteresis.png"))
     summary = {"source": "rig (motion capture)" if hw is not None else "twin", "preset": cfg.twin.preset,
                "total_gain": res.total_gain, "curves": res.curves, "run_folder": str(run.path)}

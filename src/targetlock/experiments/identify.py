@@ -1,0 +1,312 @@
+"""Identification of the endoscope model from a recorded hysteresis sweep (issue 9 §4).
+
+A sweep (``targetlock hysteresis``, on the twin or ``--rig``) records, per curve, both handle angles
+and both tip angles. For a candidate parameter set the recorded handle angles are replayed through
+the model kernel (drives bypassed: the handle *is* the recorded angle) and the simulated tip angles
+are compared with the measured ones; ``scipy.optimize.least_squares`` minimises the difference.
+Every model evaluation is one batch call of the numba kernel: all curves at once, and for the
+Jacobian all forward-difference candidates at once; the multi-start screens many random candidates
+in one call too.
+
+**What a quasi-static sweep can tell.** Divide the tip's torque balance by the cable stiffness at
+the tip, k_c = c²·K_c (c: cable arm, K_c: cable stiffness). With g = r_h/c and σ = s₀/c, per axis
+
+    [(g·θ − Φ − σ)₊ − (Φ − g·θ − σ)₊] = (K_tip/k_c)·Φ + (μ_n/k_c)·(|Φ_x| + |Φ_y| + F_n)·sgn ω
+                                         + (μ_f/k_c)·ω + (J/k_c)·dω/dt
+
+so the tip's response to the handle depends only on the six ratios below (plus J/k_c, a time
+constant² of well under a millisecond², invisible at any sample rate a motion-capture system has).
+Multiplying K_c, K_tip, μ_n, μ_f and J by one factor, or scaling r_h, s₀ and 1/c together with
+K_c·c² fixed, leaves every recorded angle unchanged: the absolute stiffness scale, the cable arm,
+the cable stiffness, the handle radius and the slack in metres are *not* identifiable from angles
+alone (they would need a force or torque measurement). The fit therefore runs on the identifiable
+ratios and keeps c and K_c of the starting preset, which fixes the scale; the written preset
+reproduces the measured behaviour exactly, but its K_tip, μ_n, μ_f, r_h, s₀ are only meaningful as
+ratios to that scale. Of the six ratios, μ_f/k_c is only weakly determined by a sweep at one speed
+(viscous drag at constant speed looks like extra Coulomb offset); the fit reports each ratio's
+standard error from the Jacobian and flags the ratios the sweep does not determine.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..config import ConfigError, from_dict, to_dict
+from ..model.drives import DriveParams
+from ..model.endoscope import EndoscopeParams, pack_params, simulate
+from .hysteresis import HysteresisConfig, _program
+
+__all__ = ["RATIOS", "Sweep", "IdentifyResult", "load_sweep", "ratios", "with_ratios", "replay", "identify",
+           "preset_toml", "plot_fit"]
+
+# The identifiable ratios: (name, unit, meaning). Fitted in log space except the slack, which may be negative.
+RATIOS = (
+    ("gain", "rad/rad", "r_h/c: handle-to-tip transformer ratio (tip radians per handle radian, cables rigid)"),
+    ("slack_angle", "rad", "s0/c: slack per cable as a tip angle (negative: pretension)"),
+    ("stiffness_ratio", "1", "K_tip/(c²·K_c): tip spring over cable stiffness at the tip"),
+    ("friction_ratio", "1/rad", "mu_n/(c²·K_c): Coulomb friction growth over cable stiffness"),
+    ("friction_offset", "rad", "F_n: friction at zero bend as an equivalent angle"),
+    ("viscous_time", "s", "mu_f/(c²·K_c): viscous friction over cable stiffness"),
+)
+_LOG = np.array([True, False, True, True, True, True])
+_STEP = np.array([2e-3, 2e-4, 2e-3, 2e-3, 2e-3, 2e-3])   # forward-difference steps in fit coordinates
+
+# Fixed physical parameters that are not identifiable from angles, with the reason (summary.json).
+NOT_IDENTIFIABLE = {
+    "cable_stiffness": "only c²·K_c sets the scale of all torques; angles fix ratios to it, not the scale",
+    "cable_arm": "appears only as r_h/c, s0/c and c²·K_c",
+    "handle_radius": "only r_h/c (the gain) is observed; r_h follows from the preset's cable arm",
+    "cable_slack": "only s0/c is observed; metres follow from the preset's cable arm",
+    "tip_stiffness": "only K_tip/(c²·K_c) is observed; N·m/rad follow from the preset's scale",
+    "mu_n": "only mu_n/(c²·K_c) is observed; N·m/rad follow from the preset's scale",
+    "mu_f": "only mu_f/(c²·K_c) is observed; N·m·s/rad follow from the preset's scale",
+    "tip_inertia": "J/(c²·K_c) is a time constant² far below a sample period squared: invisible; kept",
+    "tip_length, n_elements": "kinematics: the sweep measures angles, not positions; kept",
+}
+
+# Drives bypassed in the replay: the handle follows the recorded angle at once.
+_REPLAY_DRIVE = DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3)
+
+
+@dataclass
+class Sweep:
+    """A recorded sweep. ``handle`` and ``tip`` are (T, C, 2) rad on axes (x, y), C curves."""
+    time: np.ndarray
+    handle: np.ndarray
+    tip: np.ndarray
+    config: HysteresisConfig
+    source: str
+
+    @property
+    def sample_period(self) -> float:
+        return float(np.median(np.diff(self.time)))
+
+
+def load_sweep(folder: str | Path) -> Sweep:
+    """Read a ``targetlock hysteresis`` run folder (config.toml, timeseries.csv, summary.json)."""
+    folder = Path(folder)
+    for name in ("config.toml", "timeseries.csv"):
+        if not (folder / name).is_file():
+            raise ConfigError(f"{folder}: no {name}; RUN_FOLDER must be a run folder of 'targetlock hysteresis'")
+    try:
+        cfg = from_dict(HysteresisConfig, tomllib.loads((folder / "config.toml").read_text()))
+    except ConfigError as exc:
+        raise ConfigError(f"{folder / 'config.toml'}: not a hysteresis config: {exc}") from None
+    with open(folder / "timeseries.csv") as fh:
+        columns = fh.readline().strip().split(",")
+    need = {"t", "curve", "handle_deg", "tip_deg", "held_tip_deg"}
+    if not need <= set(columns):
+        raise ConfigError(f"{folder / 'timeseries.csv'}: needs columns {', '.join(sorted(need))}, has {', '.join(columns)}")
+    data = np.loadtxt(folder / "timeseries.csv", delimiter=",", skiprows=1, ndmin=2)
+    col = {c: data[:, i] for i, c in enumerate(columns)}
+    curve = col["curve"].astype(int)
+    n_c = len(cfg.held_angles_deg)
+    if set(np.unique(curve)) != set(range(n_c)):
+        raise ConfigError(f"{folder / 'timeseries.csv'}: curves {sorted(set(curve))} do not match the config's "
+                          f"{n_c} held angles")
+    counts = np.bincount(curve)
+    if counts.min() != counts.max() or counts[0] < 10:
+        raise ConfigError(f"{folder / 'timeseries.csv'}: curves have unequal or too few samples ({counts.tolist()})")
+    n_t = counts[0]
+
+    def per_curve(name):
+        return np.stack([np.radians(col[name][curve == c]) for c in range(n_c)], axis=1)
+
+    swept, held = cfg.axis, 1 - cfg.axis
+    handle = np.empty((n_t, n_c, 2))
+    tip = np.empty((n_t, n_c, 2))
+    handle[:, :, swept] = per_curve("handle_deg")
+    tip[:, :, swept] = per_curve("tip_deg")
+    tip[:, :, held] = per_curve("held_tip_deg")
+    if "held_handle_deg" in col:
+        handle[:, :, held] = per_curve("held_handle_deg")
+    else:  # older run folders: the held handle is the program's setpoint
+        setpoints, _, _ = _program(cfg, cfg.sample_rate)
+        if setpoints.shape[0] != n_t:
+            raise ConfigError(f"{folder}: {n_t} samples per curve, but the config's program has {setpoints.shape[0]}")
+        handle[:, :, held] = setpoints[:, :, held]
+    if not np.all(np.isfinite(handle)):
+        raise ConfigError(f"{folder / 'timeseries.csv'}: handle angles must all be finite")
+    source = "twin"
+    if (folder / "summary.json").is_file():
+        import json
+        source = json.loads((folder / "summary.json").read_text()).get("source", source)
+    return Sweep(col["t"][curve == 0], handle, tip, cfg, source)
+
+
+def ratios(e: EndoscopeParams) -> np.ndarray:
+    """The six identifiable ratios of ``e`` (order of :data:`RATIOS`)."""
+    k_c = e.cable_arm ** 2 * e.cable_stiffness
+    return np.array([e.handle_radius / e.cable_arm, e.cable_slack / e.cable_arm, e.tip_stiffness / k_c,
+                     e.mu_n / k_c, e.friction_offset, e.mu_f / k_c])
+
+
+def with_ratios(scale: EndoscopeParams, r: np.ndarray) -> EndoscopeParams:
+    """``scale`` with the ratios ``r`` imposed; its cable arm and cable stiffness (the scale) are kept."""
+    c = scale.cable_arm
+    k_c = c ** 2 * scale.cable_stiffness
+    return dataclasses.replace(scale, handle_radius=float(r[0] * c), cable_slack=float(r[1] * c),
+                               tip_stiffness=float(r[2] * k_c), mu_n=float(r[3] * k_c),
+                               friction_offset=float(r[4]), mu_f=float(r[5] * k_c))
+
+
+def _to_fit(r: np.ndarray) -> np.ndarray:
+    return np.where(_LOG, np.log(np.maximum(np.abs(r), 1e-12)), r)
+
+
+def _from_fit(z: np.ndarray) -> np.ndarray:
+    return np.where(_LOG, np.exp(z), z)
+
+
+def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chunk: int = 8) -> np.ndarray:
+    """Tip angles (K, T, C, 2) rad of K candidate endoscopes driven by the recorded handle angles.
+
+    The handle moves linearly between recorded samples (one setpoint per internal step of about
+    ``model_dt`` s), as a drive does between encoder reads. Each curve starts from its measured
+    first tip angles (mean of the first 5 samples), at rest. One batch call of the kernel runs
+    ``chunk`` candidates × C curves (the chunk bounds the memory of long sweeps).
+    """
+    n_t, n_c, _ = sweep.handle.shape
+    period = sweep.sample_period
+    sub = max(1, int(round(period / model_dt)))
+    # Setpoints of the internal steps between samples k-1 and k, ending exactly on sample k.
+    prev = np.concatenate([sweep.handle[:1], sweep.handle[:-1]])
+    frac = (np.arange(1, sub + 1) / sub)[None, :, None, None]
+    fine = (prev[:, None] + frac * (sweep.handle - prev)[:, None]).reshape(n_t * sub, n_c, 2)
+    start = np.nan_to_num(np.nanmean(sweep.tip[:5], axis=0))
+    out = np.empty((len(candidates), n_t, n_c, 2))
+    for i in range(0, len(candidates), chunk):
+        part = candidates[i:i + chunk]
+        k = len(part)
+        state = np.zeros((k * n_c, 6))
+        state[:, 0:2] = np.tile(sweep.handle[0], (k, 1))
+        state[:, 2:4] = np.tile(start, (k, 1))
+        params = pack_params([e for e in part for _ in range(n_c)], _REPLAY_DRIVE)
+        tips = simulate(state, params, np.tile(fine, (1, k, 1)), period / sub)[sub - 1::sub, :, 2:4]
+        out[i:i + k] = tips.reshape(n_t, k, n_c, 2).transpose(1, 0, 2, 3)
+    return out
+
+
+@dataclass
+class IdentifyResult:
+    endoscope: EndoscopeParams          # fitted (the scale of the starting preset)
+    start: EndoscopeParams              # the starting preset
+    ratios: np.ndarray                  # fitted identifiable ratios (order of RATIOS)
+    std_error: np.ndarray               # their standard errors (same units)
+    identifiable: list[bool]            # ratio determined by this sweep (relative std error < 2 %)
+    rms_deg: float                      # residual rms of the tip angles (deg)
+    fitted_tip: np.ndarray              # (T, C, 2) rad
+    n_evaluations: int
+
+    def summary(self) -> dict:
+        return {
+            "residual_rms_deg": self.rms_deg,
+            "ratios": {name: {"value": float(v), "std_error": float(s), "unit": unit, "meaning": doc, "identifiable": ok}
+                       for (name, unit, doc), v, s, ok in zip(RATIOS, self.ratios, self.std_error, self.identifiable)},
+            "endoscope": to_dict(self.endoscope),
+            "not_identifiable": NOT_IDENTIFIABLE,
+            "kernel_evaluations": self.n_evaluations,
+        }
+
+
+def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n_starts: int = 48,
+             seed: int = 0) -> IdentifyResult:
+    """Least-squares fit of the identifiable ratios to ``sweep``, starting around ``start``.
+
+    Multi-start: ``n_starts`` candidates drawn around ``start`` (ratios ×/÷ 1.5, slack ±2 mm at
+    the preset's arm) are screened in one batch; the best three are refined with
+    ``least_squares`` (Jacobian by forward differences, one batch per Jacobian).
+    """
+    measured = sweep.tip
+    valid = np.isfinite(measured)
+    if valid.sum() < 20:
+        raise ConfigError("the sweep has fewer than 20 finite tip samples")
+    n_eval = 0
+
+    def residuals_of(zs: np.ndarray) -> np.ndarray:
+        nonlocal n_eval
+        n_eval += len(zs)
+        tips = replay(sweep, [with_ratios(start, _from_fit(z)) for z in zs], model_dt)
+        return (tips - measured)[:, valid]
+
+    cache: dict[bytes, np.ndarray] = {}
+
+    def fun(z):
+        key = z.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = residuals_of(z[None])[0]
+        return cache[key]
+
+    def jac(z):
+        base = fun(z)
+        zs = z[None, :] + np.diag(_STEP)
+        return ((residuals_of(zs) - base[None, :]) / _STEP[:, None]).T
+
+    rng = np.random.default_rng(seed)
+    z0 = _to_fit(ratios(start))
+    arm = start.cable_arm
+    cands = z0 + np.where(_LOG, rng.uniform(-math.log(1.5), math.log(1.5), (n_starts, 6)),
+                          rng.uniform(-0.002 / arm, 0.002 / arm, (n_starts, 6)))
+    cands[0] = z0
+    costs = np.sum(residuals_of(cands) ** 2, axis=1)
+    best = None
+    for i in np.argsort(costs)[:3]:
+        sol = least_squares(fun, cands[i], jac=jac, x_scale="jac", xtol=1e-8, ftol=1e-10, max_nfev=60)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    z = best.x
+    res = fun(z)
+    j = jac(z)
+    dof = max(1, res.size - z.size)
+    s2 = float(res @ res) / dof
+    # Standard errors from the Gauss-Newton covariance, mapped from fit coordinates to the ratios.
+    cov = s2 * np.linalg.pinv(j.T @ j)
+    r = _from_fit(z)
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0)) * np.where(_LOG, r, 1.0)
+    # Slack is judged against the slack-to-pretension scale of the preset's arm (0.1 mm), the rest relatively.
+    ref = np.where(_LOG, np.abs(r), 1e-4 / arm)
+    ok = [bool(x) for x in se / ref < 0.02]
+    fitted = replay(sweep, [with_ratios(start, r)], model_dt)[0]
+    rms = math.degrees(math.sqrt(float(np.mean(res ** 2))))
+    return IdentifyResult(with_ratios(start, r), start, r, se, ok, rms, fitted, n_eval)
+
+
+def preset_toml(e: EndoscopeParams, base_preset: str, note: str) -> str:
+    """A config file (TOML) that other commands accept with ``--config``: the twin's endoscope section."""
+    import tomli_w
+    body = tomli_w.dumps({"twin": {"preset": base_preset, "endoscope": to_dict(e)}})
+    return "".join(f"# {line}\n" for line in note.splitlines()) + body
+
+
+def plot_fit(sweep: Sweep, fitted_tip: np.ndarray, path) -> None:
+    """Measured and fitted tip angle against handle angle, both axes, one colour per curve."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5), dpi=100)
+    cfg = sweep.config
+    for a, ax in enumerate(axes):
+        for c, held in enumerate(cfg.held_angles_deg):
+            colour = f"C{c}"
+            ax.plot(np.degrees(sweep.handle[:, c, a]), np.degrees(sweep.tip[:, c, a]), ".", ms=1.5, color=colour,
+                    alpha=0.35, label=f"held {held:g}°: measured" if a == cfg.axis else None)
+            ax.plot(np.degrees(sweep.handle[:, c, a]), np.degrees(fitted_tip[:, c, a]), "-", lw=1.0, color=colour,
+                    label=f"held {held:g}°: fitted" if a == cfg.axis else None)
+        role = "swept" if a == cfg.axis else "held"
+        ax.set_xlabel(f"handle angle {'xy'[a]} (deg)")
+        ax.set_ylabel(f"tip angle {'xy'[a]} (deg)")
+        ax.set_title(f"axis {'xy'[a]} ({role})")
+        ax.grid(alpha=0.3)
+    axes[cfg.axis].legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"Identification: measured ({sweep.source}) and fitted tip angles")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
