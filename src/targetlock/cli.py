@@ -97,6 +97,26 @@ def _hysteresis(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------------------------- identify
+def _identify_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_folder", metavar="RUN_FOLDER", help="run folder of 'targetlock hysteresis' (twin or --rig)")
+    _common(p)
+    p.add_argument("--seed", type=int, help="seed of the multi-start (default 0)")
+
+
+@command("identify", "fit the endoscope model to a recorded hysteresis sweep; writes a --config preset")(_identify_options)
+def _identify(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.identify import IdentifyConfig, print_summary, run_identify
+    cfg = build_config(IdentifyConfig, config_file=args.config, preset=args.preset,
+                       overrides={"seed": args.seed} if args.seed is not None else None)
+    summary = run_identify(args.run_folder, cfg, args.out)
+    print_summary(summary)
+    if args.json:
+        print_json_last(summary)
+    return 0
+
+
 # --------------------------------------------------------------------------------------------- bench
 def _bench_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=("model", "loop", "vision"), help="what to measure")
