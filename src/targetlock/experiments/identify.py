@@ -8,23 +8,32 @@ Every model evaluation is one batch call of the numba kernel: all curves at once
 Jacobian all forward-difference candidates at once; the multi-start screens many random candidates
 in one call too.
 
-**What a quasi-static sweep can tell.** Divide the tip's torque balance by the cable stiffness at
-the tip, k_c = c²·K_c (c: cable arm, K_c: cable stiffness). With g = r_h/c and σ = s₀/c, per axis
+**What a sweep can tell.** Divide the tip's torque balance by the cable stiffness at the tip,
+k_c = c²·K_c (c: cable arm, K_c: cable stiffness). With g = r_h/c, σ = s₀/c and κ = K_tip/k_c, per axis
 
-    [(g·θ − Φ − σ)₊ − (Φ − g·θ − σ)₊] = (K_tip/k_c)·Φ + (μ_n/k_c)·(|Φ_x| + |Φ_y| + F_n)·sgn ω
-                                         + (μ_f/k_c)·ω + (J/k_c)·dω/dt
+    [(g·θ − Φ − σ)₊ − (Φ − g·θ − σ)₊] = κ·Φ + (μ_n/k_c)·(|Φ_x| + |Φ_y| + F_n)·sgn ω + (μ_f/k_c)·ω
+                                         + (J/k_c)·dω/dt
 
-so the tip's response to the handle depends only on the six ratios below (plus J/k_c, a time
-constant² of well under a millisecond², invisible at any sample rate a motion-capture system has).
-Multiplying K_c, K_tip, μ_n, μ_f and J by one factor, or scaling r_h, s₀ and 1/c together with
-K_c·c² fixed, leaves every recorded angle unchanged: the absolute stiffness scale, the cable arm,
-the cable stiffness, the handle radius and the slack in metres are *not* identifiable from angles
-alone (they would need a force or torque measurement). The fit therefore runs on the identifiable
-ratios and keeps c and K_c of the starting preset, which fixes the scale; the written preset
-reproduces the measured behaviour exactly, but its K_tip, μ_n, μ_f, r_h, s₀ are only meaningful as
-ratios to that scale. Of the six ratios, μ_f/k_c is only weakly determined by a sweep at one speed
-(viscous drag at constant speed looks like extra Coulomb offset); the fit reports each ratio's
-standard error from the Jacobian and flags the ratios the sweep does not determine.
+1. Only ratios to k_c appear: multiplying K_c, K_tip, μ_n, μ_f and J by one factor, or r_h, s₀ and
+   1/c together with c²·K_c fixed, leaves every recorded angle unchanged. The stiffness scale, the
+   cable arm, the cable stiffness, the handle radius and the slack in metres are *not* identifiable
+   from angles (that would need a force or torque). J/k_c (a time constant² of ~(8 ms)²) is far
+   below what a 100-200 Hz sweep resolves; J is kept.
+2. Where one cable is taut (most of a sweep) the balance reads, divided by g,
+   θ = σ/g + Φ/G ± (μ_n/(k_c·g))·(|Φ_x| + |Φ_y| + F_n) + (μ_f/(k_c·g))·ω with G = g/(1 + κ):
+   the static gain G, the slack as a handle angle s₀/r_h, the friction terms per handle angle and
+   F_n (separated from μ_n by the bend dependence) are determined by any sweep; g and κ are not
+   separately.
+3. g and κ separate only where the cable tension changes shape: with slack, the returning tip
+   stalls at Φ_stop = μ_n·(|Φ_other| + F_n)/(K_tip − μ_n) on its spring alone; with pretension, both
+   cables pull near the centre and the slope there is (1 + κ/2)/g instead of (1 + κ)/g. With no
+   slack and no pretension (s₀ ≈ 0) κ is not determined.
+
+So the fit runs on the coordinates of :data:`RATIOS` (five always identifiable, the compliance ratio
+κ when the sweep shows it), keeps c and K_c of the starting preset to fix the scale, and reports a
+standard error per coordinate from the Jacobian with a flag saying whether this sweep determines
+it. The written preset reproduces the measured behaviour; its K_tip, μ_n, μ_f, r_h, s₀ are only
+meaningful together with the preset's c and K_c.
 """
 from __future__ import annotations
 
@@ -46,29 +55,37 @@ from .hysteresis import HysteresisConfig, _program
 __all__ = ["RATIOS", "NOT_IDENTIFIABLE", "print_summary", "IdentifyConfig", "Sweep", "IdentifyResult", "load_sweep", "ratios", "with_ratios", "replay", "identify",
            "preset_toml", "plot_fit", "run_identify"]
 
-# The identifiable ratios: (name, unit, meaning). Fitted in log space except the slack, which may be negative.
+# The fitted coordinates: (name, unit, meaning). All but the slack are fitted in log space. The
+# first five are determined by any sweep; the last separates the cable's compliance from the
+# transformer ratio and is seen only where the cables' tension changes shape (slack or pretension).
 RATIOS = (
-    ("gain", "rad/rad", "r_h/c: handle-to-tip transformer ratio (tip radians per handle radian, cables rigid)"),
-    ("slack_angle", "rad", "s0/c: slack per cable as a tip angle (negative: pretension)"),
-    ("stiffness_ratio", "1", "K_tip/(c²·K_c): tip spring over cable stiffness at the tip"),
-    ("friction_ratio", "1/rad", "mu_n/(c²·K_c): Coulomb friction growth over cable stiffness"),
+    ("static_gain", "rad/rad", "r_h/c / (1 + K_tip/(c²·K_c)): tip/handle gain with one cable taut, no friction"),
+    ("slack_handle", "rad", "s0/r_h: slack per cable as a handle angle (negative: pretension)"),
+    ("friction_handle", "rad/rad", "mu_n/(c·K_c·r_h): handle angle Coulomb friction holds back, per rad of "
+                                   "|phi_x| + |phi_y| + F_n"),
     ("friction_offset", "rad", "F_n: friction at zero bend as an equivalent angle"),
-    ("viscous_time", "s", "mu_f/(c²·K_c): viscous friction over cable stiffness"),
+    ("viscous_handle", "s", "mu_f/(c·K_c·r_h): handle angle viscous friction holds back, per rad/s of tip rate"),
+    ("compliance_ratio", "1", "K_tip/(c²·K_c): tip spring over cable stiffness at the tip"),
 )
 _LOG = np.array([True, False, True, True, True, True])
-_STEP = np.array([2e-3, 2e-4, 2e-3, 2e-3, 2e-3, 2e-3])   # forward-difference steps in fit coordinates
+_STEP = np.array([2e-3, 1e-4, 2e-3, 2e-3, 2e-3, 2e-3])   # forward-difference steps in fit coordinates
+# A weak pull of log(compliance_ratio) towards the starting preset, in rad of tip angle per unit of
+# log: a factor e off the preset costs as much as one sample off by 1.1°, against thousands of samples
+# when the sweep determines it; where it does not, it stays at the preset's value instead of drifting.
+_PRIOR_WEIGHT = 0.02
 
 # Fixed physical parameters that are not identifiable from angles, with the reason (summary.json).
 NOT_IDENTIFIABLE = {
-    "cable_stiffness": "only c²·K_c sets the scale of all torques; angles fix ratios to it, not the scale",
-    "cable_arm": "appears only as r_h/c, s0/c and c²·K_c",
-    "handle_radius": "only r_h/c (the gain) is observed; r_h follows from the preset's cable arm",
-    "cable_slack": "only s0/c is observed; metres follow from the preset's cable arm",
+    "cable_stiffness": "c²·K_c sets the scale of all torques; angles fix ratios to it, not the scale: kept",
+    "cable_arm": "appears only in r_h/c, s0/c and c²·K_c: kept",
+    "handle_radius": "only r_h/c is observed; metres per radian follow from the preset's cable arm",
+    "cable_slack": "only s0/r_h is observed; metres follow from the preset's cable arm",
     "tip_stiffness": "only K_tip/(c²·K_c) is observed; N·m/rad follow from the preset's scale",
-    "mu_n": "only mu_n/(c²·K_c) is observed; N·m/rad follow from the preset's scale",
-    "mu_f": "only mu_f/(c²·K_c) is observed; N·m·s/rad follow from the preset's scale",
+    "mu_n": "only mu_n/(c·K_c·r_h) is observed; N·m/rad follow from the preset's scale",
+    "mu_f": "only mu_f/(c·K_c·r_h) is observed; N·m·s/rad follow from the preset's scale",
     "tip_inertia": "J/(c²·K_c) is a time constant² far below a sample period squared: invisible; kept",
     "tip_length, n_elements": "kinematics: the sweep measures angles, not positions; kept",
+    "friction_model": "a model choice, not a value: kept from the preset",
 }
 
 
@@ -153,19 +170,23 @@ def load_sweep(folder: str | Path) -> Sweep:
 
 
 def ratios(e: EndoscopeParams) -> np.ndarray:
-    """The six identifiable ratios of ``e`` (order of :data:`RATIOS`)."""
+    """The fitted coordinates of ``e`` (order of :data:`RATIOS`)."""
     k_c = e.cable_arm ** 2 * e.cable_stiffness
-    return np.array([e.handle_radius / e.cable_arm, e.cable_slack / e.cable_arm, e.tip_stiffness / k_c,
-                     e.mu_n / k_c, e.friction_offset, e.mu_f / k_c])
+    g = e.handle_radius / e.cable_arm
+    kappa = e.tip_stiffness / k_c
+    return np.array([g / (1 + kappa), e.cable_slack / e.handle_radius, e.mu_n / (k_c * g), e.friction_offset,
+                     e.mu_f / (k_c * g), kappa])
 
 
 def with_ratios(scale: EndoscopeParams, r: np.ndarray) -> EndoscopeParams:
-    """``scale`` with the ratios ``r`` imposed; its cable arm and cable stiffness (the scale) are kept."""
+    """``scale`` with the coordinates ``r`` imposed; its cable arm and cable stiffness (the scale) are kept."""
     c = scale.cable_arm
     k_c = c ** 2 * scale.cable_stiffness
-    return dataclasses.replace(scale, handle_radius=float(r[0] * c), cable_slack=float(r[1] * c),
-                               tip_stiffness=float(r[2] * k_c), mu_n=float(r[3] * k_c),
-                               friction_offset=float(r[4]), mu_f=float(r[5] * k_c))
+    kappa = float(r[5])
+    g = float(r[0]) * (1 + kappa)
+    return dataclasses.replace(scale, handle_radius=g * c, cable_slack=float(r[1]) * g * c,
+                               tip_stiffness=kappa * k_c, mu_n=float(r[2]) * k_c * g,
+                               friction_offset=float(r[3]), mu_f=float(r[4]) * k_c * g)
 
 
 def _to_fit(r: np.ndarray) -> np.ndarray:
@@ -209,7 +230,7 @@ def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chu
 class IdentifyResult:
     endoscope: EndoscopeParams          # fitted (the scale of the starting preset)
     start: EndoscopeParams              # the starting preset
-    ratios: np.ndarray                  # fitted identifiable ratios (order of RATIOS)
+    ratios: np.ndarray                  # fitted coordinates (order of RATIOS)
     std_error: np.ndarray               # their standard errors (same units)
     identifiable: list[bool]            # ratio determined by this sweep (3 std errors within 10 %)
     rms_deg: float                      # residual rms of the tip angles (deg)
@@ -241,11 +262,14 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
         raise ConfigError("the sweep has fewer than 20 finite tip samples")
     n_eval = 0
 
+    z0 = _to_fit(ratios(start))
+
     def residuals_of(zs: np.ndarray) -> np.ndarray:
         nonlocal n_eval
         n_eval += len(zs)
         tips = replay(sweep, [with_ratios(start, _from_fit(z)) for z in zs], model_dt)
-        return (tips - measured)[:, valid]
+        prior = _PRIOR_WEIGHT * (zs[:, 5:6] - z0[5])
+        return np.concatenate([(tips - measured)[:, valid], prior], axis=1)
 
     cache: dict[bytes, np.ndarray] = {}
 
@@ -262,10 +286,9 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
         return ((residuals_of(zs) - base[None, :]) / _STEP[:, None]).T
 
     rng = np.random.default_rng(seed)
-    z0 = _to_fit(ratios(start))
-    arm = start.cable_arm
+    radius = start.handle_radius
     cands = z0 + np.where(_LOG, rng.uniform(-math.log(1.5), math.log(1.5), (n_starts, 6)),
-                          rng.uniform(-0.002 / arm, 0.002 / arm, (n_starts, 6)))
+                          rng.uniform(-0.002 / radius, 0.002 / radius, (n_starts, 6)))
     cands[0] = z0
     costs = np.sum(residuals_of(cands) ** 2, axis=1)
     best = None
@@ -283,11 +306,11 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
     r = _from_fit(z)
     se = np.sqrt(np.maximum(np.diag(cov), 0.0)) * np.where(_LOG, r, 1.0)
     # Determined: three standard errors within 10 % of the value; the slack, which may be ~0, against
-    # at least the equivalent of 0.1 mm at the preset's arm.
-    ref = np.where(_LOG, np.abs(r), np.maximum(np.abs(r), 1e-4 / arm))
+    # at least the equivalent of 0.1 mm at the preset's handle radius.
+    ref = np.where(_LOG, np.abs(r), np.maximum(np.abs(r), 1e-4 / radius))
     ok = [bool(x) for x in 3.0 * se <= 0.1 * ref]
     fitted = replay(sweep, [with_ratios(start, r)], model_dt)[0]
-    rms = math.degrees(math.sqrt(float(np.mean(res ** 2))))
+    rms = math.degrees(math.sqrt(float(np.mean(res[:-1] ** 2))))
     return IdentifyResult(with_ratios(start, r), start, r, se, ok, rms, fitted, n_eval)
 
 
