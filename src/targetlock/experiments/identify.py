@@ -197,13 +197,14 @@ def _from_fit(z: np.ndarray) -> np.ndarray:
     return np.where(_LOG, np.exp(z), z)
 
 
-def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chunk: int = 8) -> np.ndarray:
+def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chunk: int = 8,
+           block: int = 2000) -> np.ndarray:
     """Tip angles (K, T, C, 2) rad of K candidate endoscopes driven by the recorded handle angles.
 
     The handle moves linearly between recorded samples (one setpoint per internal step of about
     ``model_dt`` s), as a drive does between encoder reads. Each curve starts from its measured
     first tip angles (mean of the first 5 samples), at rest. One batch call of the kernel runs
-    ``chunk`` candidates × C curves (the chunk bounds the memory of long sweeps).
+    ``chunk`` candidates × C curves over ``block`` samples (both bound the memory of long sweeps).
     """
     n_t, n_c, _ = sweep.handle.shape
     period = sweep.sample_period
@@ -221,8 +222,10 @@ def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chu
         state[:, 0:2] = np.tile(sweep.handle[0], (k, 1))
         state[:, 2:4] = np.tile(start, (k, 1))
         params = pack_params([e for e in part for _ in range(n_c)], _REPLAY_DRIVE)
-        tips = simulate(state, params, np.tile(fine, (1, k, 1)), period / sub)[sub - 1::sub, :, 2:4]
-        out[i:i + k] = tips.reshape(n_t, k, n_c, 2).transpose(1, 0, 2, 3)
+        for t0 in range(0, n_t, block):  # time blocks bound the memory; the state carries over
+            t1 = min(n_t, t0 + block)
+            tips = simulate(state, params, np.tile(fine[t0 * sub:t1 * sub], (1, k, 1)), period / sub)
+            out[i:i + k, t0:t1] = tips[sub - 1::sub, :, 2:4].reshape(t1 - t0, k, n_c, 2).transpose(1, 0, 2, 3)
     return out
 
 
@@ -290,7 +293,7 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
     cands = z0 + np.where(_LOG, rng.uniform(-math.log(1.5), math.log(1.5), (n_starts, 6)),
                           rng.uniform(-0.002 / radius, 0.002 / radius, (n_starts, 6)))
     cands[0] = z0
-    costs = np.sum(residuals_of(cands) ** 2, axis=1)
+    costs = np.concatenate([np.sum(residuals_of(cands[i:i + 8]) ** 2, axis=1) for i in range(0, n_starts, 8)])
     best = None
     for i in np.argsort(costs)[:3]:
         sol = least_squares(fun, cands[i], jac=jac, x_scale="jac", xtol=1e-8, ftol=1e-10, max_nfev=60)
