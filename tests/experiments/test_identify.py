@@ -75,7 +75,7 @@ def test_recovers_the_identifiable_parameters_of_a_random_scope_within_10_percen
     start_err = np.abs(ratios(twin_config(preset).endoscope) - truth) / np.abs(truth)
     assert start_err.max() > 2 * err.max()
     # Nothing but the added noise is left unexplained.
-    assert noise * 0.9 < summary["residual_rms_deg"] < noise * 1.2
+    assert noise * 0.95 < summary["residual_rms_deg"] < noise * 1.05
 
 
 def test_fitted_preset_works_with_config_and_reproduces_the_scope(fits):

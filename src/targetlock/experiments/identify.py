@@ -197,13 +197,27 @@ def _from_fit(z: np.ndarray) -> np.ndarray:
     return np.where(_LOG, np.exp(z), z)
 
 
+def _start_tip(sweep: Sweep) -> np.ndarray:
+    """Initial tip angles (C, 2) rad: per axis, the mean measured tip angle before that axis' handle
+    first moves (a resting tip held by friction stays where it is, so every such sample measures
+    it; an axis whose handle never moves is averaged over the whole sweep)."""
+    moved = np.abs(sweep.handle - sweep.handle[:1]) > 1e-4
+    n_t = sweep.handle.shape[0]
+    first = np.where(moved.any(axis=0), moved.argmax(axis=0), n_t)
+    start = np.zeros(sweep.handle.shape[1:])
+    for c, a in np.ndindex(*start.shape):
+        window = sweep.tip[:max(1, first[c, a]), c, a]
+        start[c, a] = np.nanmean(window) if np.isfinite(window).any() else 0.0
+    return start
+
+
 def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chunk: int = 8,
            block: int = 2000) -> np.ndarray:
     """Tip angles (K, T, C, 2) rad of K candidate endoscopes driven by the recorded handle angles.
 
     The handle moves linearly between recorded samples (one setpoint per internal step of about
-    ``model_dt`` s), as a drive does between encoder reads. Each curve starts from its measured
-    first tip angles (mean of the first 5 samples), at rest. One batch call of the kernel runs
+    ``model_dt`` s), as a drive does between encoder reads. Each curve starts at rest from its
+    measured tip angles (see :func:`_start_tip`). One batch call of the kernel runs
     ``chunk`` candidates × C curves over ``block`` samples (both bound the memory of long sweeps).
     """
     n_t, n_c, _ = sweep.handle.shape
@@ -213,7 +227,7 @@ def replay(sweep: Sweep, candidates: list[EndoscopeParams], model_dt: float, chu
     prev = np.concatenate([sweep.handle[:1], sweep.handle[:-1]])
     frac = (np.arange(1, sub + 1) / sub)[None, :, None, None]
     fine = (prev[:, None] + frac * (sweep.handle - prev)[:, None]).reshape(n_t * sub, n_c, 2)
-    start = np.nan_to_num(np.nanmean(sweep.tip[:5], axis=0))
+    start = _start_tip(sweep)
     out = np.empty((len(candidates), n_t, n_c, 2))
     for i in range(0, len(candidates), chunk):
         part = candidates[i:i + chunk]
