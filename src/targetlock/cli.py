@@ -104,7 +104,7 @@ def _identify_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of the multi-start (default 0)")
 
 
-@command("identify", "fit the endoscope model to a recorded hysteresis sweep; writes a --config preset")(_identify_options)
+@command("identify", "fit the endoscope model to a recorded hysteresis sweep")(_identify_options)
 def _identify(args: argparse.Namespace) -> int:
     from .experiments.common import build_config, print_json_last
     from .experiments.identify import IdentifyConfig, print_summary, run_identify

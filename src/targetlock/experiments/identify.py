@@ -52,8 +52,8 @@ from ..model.endoscope import EndoscopeParams, pack_params, simulate, static_gai
 from ..model.twin import TwinConfig
 from .hysteresis import HysteresisConfig, _program
 
-__all__ = ["RATIOS", "NOT_IDENTIFIABLE", "print_summary", "IdentifyConfig", "Sweep", "IdentifyResult", "load_sweep", "ratios", "with_ratios", "replay", "identify",
-           "preset_toml", "plot_fit", "run_identify"]
+__all__ = ["RATIOS", "NOT_IDENTIFIABLE", "IdentifyConfig", "Sweep", "IdentifyResult", "load_sweep", "ratios",
+           "with_ratios", "replay", "identify", "preset_toml", "plot_fit", "run_identify", "print_summary"]
 
 # The fitted coordinates: (name, unit, meaning). All but the slack are fitted in log space. The
 # first five are determined by any sweep; the last separates the cable's compliance from the
@@ -131,7 +131,8 @@ def load_sweep(folder: str | Path) -> Sweep:
         columns = fh.readline().strip().split(",")
     need = {"t", "curve", "handle_deg", "tip_deg", "held_tip_deg"}
     if not need <= set(columns):
-        raise ConfigError(f"{folder / 'timeseries.csv'}: needs columns {', '.join(sorted(need))}, has {', '.join(columns)}")
+        raise ConfigError(f"{folder / 'timeseries.csv'}: needs columns {', '.join(sorted(need))}, "
+                          f"has {', '.join(columns)}")
     data = np.loadtxt(folder / "timeseries.csv", delimiter=",", skiprows=1, ndmin=2)
     col = {c: data[:, i] for i, c in enumerate(columns)}
     curve = col["curve"].astype(int)
@@ -257,7 +258,8 @@ class IdentifyResult:
     def summary(self) -> dict:
         return {
             "residual_rms_deg": self.rms_deg,
-            "ratios": {name: {"value": float(v), "std_error": float(s), "unit": unit, "meaning": doc, "identifiable": ok}
+            "ratios": {name: {"value": float(v), "std_error": float(s), "unit": unit, "meaning": doc,
+                              "identifiable": ok}
                        for (name, unit, doc), v, s, ok in zip(RATIOS, self.ratios, self.std_error, self.identifiable)},
             "endoscope": to_dict(self.endoscope),
             "not_identifiable": NOT_IDENTIFIABLE,
@@ -390,7 +392,8 @@ def run_identify(run_folder: str | Path, cfg: IdentifyConfig, out: str | Path | 
 def print_summary(summary: dict) -> None:
     """The fitted ratios, a line each, for the terminal."""
     print(f"identified from {summary['run_folder_measured']} ({summary['source']}): residual rms "
-          f"{summary['residual_rms_deg']:.3f} deg, static gain {summary['static_gain']:.3f}, {summary['seconds']:.1f} s")
+          f"{summary['residual_rms_deg']:.3f} deg, static gain {summary['static_gain']:.3f}, "
+          f"{summary['seconds']:.1f} s")
     for name, r in summary["ratios"].items():
         flag = "" if r["identifiable"] else "   NOT determined by this sweep"
         print(f"  {name:16s} {r['value']:10.4f} ± {r['std_error']:.4f} {r['unit']:8s}{flag}")
