@@ -269,11 +269,12 @@ class IdentifyResult:
 
 def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n_starts: int = 48,
              seed: int = 0) -> IdentifyResult:
-    """Least-squares fit of the identifiable ratios to ``sweep``, starting around ``start``.
+    """Least-squares fit of the coordinates of :data:`RATIOS` to ``sweep``, starting around ``start``
+    (whose cable arm and cable stiffness fix the scale; ``model_dt`` s is the replay's step).
 
-    Multi-start: ``n_starts`` candidates drawn around ``start`` (ratios ×/÷ 1.5, slack ±2 mm at
-    the preset's arm) are screened in one batch; the best three are refined with
-    ``least_squares`` (Jacobian by forward differences, one batch per Jacobian).
+    Multi-start: ``n_starts`` candidates drawn around ``start`` (×/÷ 1.5, slack ±2 mm at the preset's
+    handle radius) are screened in batches of 8; the best three are refined with ``least_squares``
+    (Jacobian by forward differences, one batch call per Jacobian).
     """
     measured = sweep.tip
     valid = np.isfinite(measured)
