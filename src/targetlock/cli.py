@@ -75,11 +75,13 @@ def _hysteresis(args: argparse.Namespace) -> int:
             res = run_sweep_on_rig(cfg, rig)
     else:
         res = run_sweep(cfg)
-    with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle"]) as ts:
+    with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle",
+                         "held_handle_deg"]) as ts:
         for c, held in enumerate(cfg.held_angles_deg):
             n = res.time.size
             ts.write_many(np.column_stack([res.time, np.full(n, c), np.full(n, held), np.degrees(res.handle[:, c]),
-                                           np.degrees(res.tip[:, c]), np.degrees(res.held_tip[:, c]), res.phase]))
+                                           np.degrees(res.tip[:, c]), np.degrees(res.held_tip[:, c]), res.phase,
+                                           np.degrees(res.held_handle[:, c])]))
     plot(res, cfg, run.file("hysteresis.png"))
     summary = {"source": "rig (motion capture)" if hw is not None else "twin", "preset": cfg.twin.preset,
                "total_gain": res.total_gain, "curves": res.curves, "run_folder": str(run.path)}
@@ -90,6 +92,26 @@ def _hysteresis(args: argparse.Namespace) -> int:
         print(f"{c['second_angle_deg']:>10.0f} {c['hysteresis_width_deg']:>12.1f} {c['deadband_deg']:>15.1f} "
               f"{c['stop_angle_deg']:>17.1f}")
     print(f"run folder: {run.path}  (plot: {run.file('hysteresis.png')})")
+    if args.json:
+        print_json_last(summary)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- identify
+def _identify_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_folder", metavar="RUN_FOLDER", help="run folder of 'targetlock hysteresis' (twin or --rig)")
+    _common(p)
+    p.add_argument("--seed", type=int, help="seed of the multi-start (default 0)")
+
+
+@command("identify", "fit the endoscope model to a recorded hysteresis sweep")(_identify_options)
+def _identify(args: argparse.Namespace) -> int:
+    from .experiments.common import build_config, print_json_last
+    from .experiments.identify import IdentifyConfig, print_summary, run_identify
+    cfg = build_config(IdentifyConfig, config_file=args.config, preset=args.preset,
+                       overrides={"seed": args.seed} if args.seed is not None else None)
+    summary = run_identify(args.run_folder, cfg, args.out)
+    print_summary(summary)
     if args.json:
         print_json_last(summary)
     return 0

@@ -52,6 +52,7 @@ class HysteresisResult:
     handle: np.ndarray        # (T, C) rad, swept handle per curve
     tip: np.ndarray           # (T, C) rad, swept tip angle per curve
     held_tip: np.ndarray      # (T, C) rad, the held axis' tip angle
+    held_handle: np.ndarray   # (T, C) rad, the held axis' handle angle
     phase: np.ndarray         # (T,) int, index of the sweep cycle (-1 while positioning)
     curves: list[dict]
     total_gain: float
@@ -102,7 +103,7 @@ def _program(cfg: HysteresisConfig, sample_rate: float) -> tuple[np.ndarray, np.
     return setpoints, np.concatenate([np.full(n_pos, -1), phase]), n_pos
 
 
-def _result(cfg: HysteresisConfig, t, handle, tip, held_tip, phase, n_pos) -> HysteresisResult:
+def _result(cfg: HysteresisConfig, t, handle, tip, held_tip, held_handle, phase, n_pos) -> HysteresisResult:
     curves = []
     for c in range(handle.shape[1]):
         m = analyse_curve(handle[n_pos:, c], tip[n_pos:, c], phase[n_pos:], len(cfg.amplitudes_deg))
@@ -110,7 +111,7 @@ def _result(cfg: HysteresisConfig, t, handle, tip, held_tip, phase, n_pos) -> Hy
         m["second_angle_measured_deg"] = float(np.degrees(np.nanmean(held_tip[n_pos:, c])))
         curves.append(m)
     zero = int(np.argmin(np.abs(np.asarray(cfg.held_angles_deg))))
-    return HysteresisResult(t, handle, tip, held_tip, phase, curves, curves[zero]["total_gain"])
+    return HysteresisResult(t, handle, tip, held_tip, held_handle, phase, curves, curves[zero]["total_gain"])
 
 
 def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
@@ -124,7 +125,7 @@ def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
                    dt_sample / substeps, substeps)
     swept, held = cfg.axis, 1 - cfg.axis
     t = np.arange(setpoints.shape[0]) * dt_sample
-    return _result(cfg, t, out[:, :, swept], out[:, :, 2 + swept], out[:, :, 2 + held], phase, n_pos)
+    return _result(cfg, t, out[:, :, swept], out[:, :, 2 + swept], out[:, :, 2 + held], out[:, :, held], phase, n_pos)
 
 
 def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisResult:
@@ -182,7 +183,7 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisRes
     tips = median_filter(tips, size=(5, 1, 1), mode="nearest")
     swept, held = cfg.axis, 1 - cfg.axis
     t = np.arange(n_t) / sample_rate
-    return _result(cfg, t, handle[:, :, swept], tips[:, :, swept], tips[:, :, held], phase, n_pos)
+    return _result(cfg, t, handle[:, :, swept], tips[:, :, swept], tips[:, :, held], handle[:, :, held], phase, n_pos)
 
 
 def _branch_gap(inc_h, inc_t, dec_h, dec_t) -> np.ndarray:
