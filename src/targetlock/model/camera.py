@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import param
+from ..config import ConfigError, param
 
 __all__ = ["CameraParams", "project", "unproject", "world_to_camera", "LatencyLine"]
 
@@ -33,6 +33,12 @@ class CameraParams:
     k2: float = param(0.0, lo=-1.0, hi=1.0, doc="radial distortion r^4 coefficient")
     fps: float = param(22.0, unit="1/s", lo=0.1, hi=1000.0, doc="frame rate (report: 22 fps)")
     latency: float = param(0.4, unit="s", lo=0.0, hi=5.0, doc="capture-to-controller video latency (report: 0.4 s)")
+
+    def check(self, prefix: str = "") -> None:
+        for axis, c, size in (("x", self.cx, self.width), ("y", self.cy, self.height)):
+            if not 0.0 <= c <= size:
+                raise ConfigError(f"{prefix}c{axis} = {c:g} px lies outside the image (0 to {size} px wide); "
+                                  f"allowed: [0, {size}] px")
 
     @property
     def matrix(self) -> np.ndarray:
