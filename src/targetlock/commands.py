@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import errno
 import logging
 import sys
 from dataclasses import dataclass
@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .cli import _common, _out_options, cli_overrides, command, config_flag, option_values
 from .config import ConfigError, field_info, param, replace_path
+from .errors import DeviceError
 from .presets import PRESETS
 
 log = logging.getLogger(__name__)
@@ -325,6 +326,13 @@ def _sim_rig(args: argparse.Namespace) -> int:
         serve_twin_rig(hw, cfg.twin, stop, on_ready=lambda line: print(line, flush=True))
     except KeyboardInterrupt:
         pass
+    except OSError as exc:
+        if exc.errno != errno.EADDRINUSE:
+            raise
+        n, bus = hw.natnet, hw.can.bus
+        raise DeviceError(f"port in use: NatNet {n.command_port}/{n.data_port} (UDP) or CAN bus {bus.interface} port "
+                          f"{bus.port}; is another sim-rig or Motive running? Stop it or choose other ports "
+                          "with --rig FILE") from exc
     finally:
         stop.set()
     return 0

@@ -68,9 +68,13 @@ def _os_error(exc: OSError) -> TargetlockError:
     if exc.errno in (errno.ENODEV, errno.ENXIO) or "No such device" in str(exc):
         return DeviceError(f"no such device{where} ({why}): check the interface name and that it is up "
                            "(`ip link show`)")
-    if isinstance(exc, (ConnectionError, TimeoutError)) or exc.errno in (errno.ECONNREFUSED, errno.ENETUNREACH,
-                                                                            errno.EHOSTUNREACH):
-        return DeviceError(f"{exc}: is the server / peer running and reachable?")
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return DeviceError(f"network address not available on this machine ({why}): the rig file's natnet.local_ip "
+                           "/ server_ip and can.bus.udp_interface_ip must be addresses of this machine's interfaces")
+    if exc.errno in (errno.ECONNREFUSED, errno.ENETUNREACH, errno.EHOSTUNREACH):
+        return DeviceError(f"{why}{where}: is the server / peer running and reachable?")
+    if isinstance(exc, (ConnectionError, TimeoutError)):
+        return DeviceError(str(exc) or f"{type(exc).__name__}: is the server / peer running and reachable?")
     if isinstance(exc, FileNotFoundError):
         return InputFileError(f"{exc.filename or exc}: no such file or folder; check the path")
     if isinstance(exc, IsADirectoryError):
@@ -94,7 +98,7 @@ def as_user_error(exc: BaseException) -> TargetlockError | None:
     # python-can, canopen or the rig code just to print an error.
     rig_base = sys.modules.get("targetlock.rig.base")
     if rig_base is not None and isinstance(exc, rig_base.DriveFault):
-        return DeviceError(f"drive: {exc}; drives were disabled, check the drive and the bus, then re-run")
+        return DeviceError(f"drives: {exc}; check the drives and the bus (details in run.log), then re-run")
     can = sys.modules.get("can")
     if can is not None and isinstance(exc, can.CanError):
         return DeviceError(f"CAN bus: {exc}; check the interface (`ip link show`) or the rig file's [can.bus]")
