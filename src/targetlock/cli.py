@@ -163,7 +163,7 @@ def _hysteresis(args: argparse.Namespace) -> int:
             from .experiments.hysteresis import run_sweep_on_rig
             from .rig.hardware import HardwareRig
             with HardwareRig(hw, cfg.twin.camera) as rig:
-                res = run_sweep_on_rig(cfg, rig)
+                res = run_sweep_on_rig(cfg, rig, progress=True)
         else:
             res = run_sweep(cfg)
         with run.timeseries(["t", "curve", "second_angle_deg", "handle_deg", "tip_deg", "held_tip_deg", "cycle"]) as ts:
