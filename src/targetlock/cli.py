@@ -177,9 +177,9 @@ def _hysteresis(args: argparse.Namespace) -> int:
         run.write_summary(summary)
     print(f"hysteresis sweep, preset {cfg.twin.preset!r}: total gain {res.total_gain:.3f} (report: 90/110 = 0.818)")
     print(f"{'held (deg)':>10} {'width (deg)':>12} {'deadband (deg)':>15} {'stop angle (deg)':>17}")
-    for c in res.curves:
-        print(f"{c['second_angle_deg']:>10.0f} {c['hysteresis_width_deg']:>12.1f} {c['deadband_deg']:>15.1f} "
-              f"{c['stop_angle_deg']:>17.1f}")
+    for curve in res.curves:
+        print(f"{curve['second_angle_deg']:>10.0f} {curve['hysteresis_width_deg']:>12.1f} {curve['deadband_deg']:>15.1f} "
+              f"{curve['stop_angle_deg']:>17.1f}")
     print(f"run folder: {run.path}  (plot: {run.file('hysteresis.png')})")
     if args.json:
         print_json_last(summary)

@@ -31,11 +31,11 @@ def param(default: Any, *, unit: str = "", lo: float | None = None, hi: float | 
     ``file=True`` marks a path to an input file: run folders keep a copy of it."""
     meta = {"unit": unit, "lo": lo, "hi": hi, "choices": choices, "doc": doc, "lo_open": lo_open, "file": file}
     if isinstance(default, (list, dict)):
-        return field(default_factory=lambda d=default: type(d)(d), metadata=meta)
+        return field(default_factory=lambda: type(default)(default), metadata=meta)
     return field(default=default, metadata=meta)
 
 
-def _range_text(meta: dict) -> str:
+def _range_text(meta: typing.Mapping[str, Any]) -> str:
     if meta.get("choices"):
         return "one of " + ", ".join(repr(c) for c in meta["choices"])
     lo, hi = meta.get("lo"), meta.get("hi")
@@ -44,7 +44,7 @@ def _range_text(meta: dict) -> str:
     return f"{left}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]{unit}"
 
 
-def _check_value(name: str, value: Any, meta: dict) -> str | None:
+def _check_value(name: str, value: Any, meta: typing.Mapping[str, Any]) -> str | None:
     """The problem with one value, or None."""
     choices = meta.get("choices")
     if choices is not None:
@@ -119,8 +119,8 @@ def _coerce(name: str, tp: Any, value: Any, errors: list[str]) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None:
             return None
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _coerce(name, args[0], value, errors)
+        members = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _coerce(name, members[0], value, errors)
     expect = {float: "a number", int: "a whole number", bool: "true or false", str: "text"}
     if tp in expect:
         ok = (isinstance(value, (int, float)) and not isinstance(value, bool) if tp is float else
@@ -138,10 +138,10 @@ def _coerce(name: str, tp: Any, value: Any, errors: list[str]) -> Any:
         if n is not None and len(value) != n:
             errors.append(f"{name} = {list(value)!r} needs exactly {n} values")
             return _BAD
-        out = [_coerce(f"{name}[{i}]", args[0 if n is None else i], v, errors) for i, v in enumerate(value)]
-        if any(v is _BAD for v in out):
+        items = [_coerce(f"{name}[{i}]", args[0 if n is None else i], v, errors) for i, v in enumerate(value)]
+        if any(v is _BAD for v in items):
             return _BAD
-        return tuple(out) if origin is tuple else out
+        return tuple(items) if origin is tuple else items
     return value
 
 
@@ -254,7 +254,7 @@ def describe(cls: type, prefix: str = "") -> list[dict]:
     return rows
 
 
-def field_info(cls: type, dotted: str) -> tuple[Any, dict, Any]:
+def field_info(cls: Any, dotted: str) -> tuple[Any, dict, Any]:
     """(type, param metadata, default) of the nested field ``a.b.c`` of config class ``cls``."""
     head, _, rest = dotted.partition(".")
     known = {f.name: f for f in fields(cls)}

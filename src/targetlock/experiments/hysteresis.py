@@ -80,8 +80,8 @@ def _sweep_profile(cfg: HysteresisConfig) -> tuple[np.ndarray, np.ndarray]:
         seg = np.linspace(knots[i], knots[i + 1], n, endpoint=False)
         pos.append(seg)
         idx.append(np.full(n, phases[i]))
-    pos.append([knots[-1]])
-    idx.append([last])
+    pos.append(np.array([knots[-1]]))
+    idx.append(np.array([last]))
     return np.concatenate(pos), np.concatenate(idx).astype(int)
 
 

@@ -64,15 +64,15 @@ def project(points_cam: np.ndarray, cam: CameraParams, *, distort: bool = True) 
     """
     p = np.asarray(points_cam, dtype=float)
     if p.shape == (3,):  # one point: plain floats are several times faster than array ops
-        x, y, z = float(p[0]), float(p[1]), float(p[2])
-        if not z > 1e-9:
+        u, v, w = float(p[0]), float(p[1]), float(p[2])
+        if not w > 1e-9:
             return np.array([np.nan, np.nan])
-        x, y = x / z, y / z
+        u, v = u / w, v / w
         if distort and (cam.k1 or cam.k2):
-            r2 = x * x + y * y
+            r2 = u * u + v * v
             f = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2
-            x, y = x * f, y * f
-        return np.array([cam.fx * x + cam.cx, cam.fy * y + cam.cy])
+            u, v = u * f, v * f
+        return np.array([cam.fx * u + cam.cx, cam.fy * v + cam.cy])
     z = p[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x = np.where(z > 1e-9, p[..., 0] / z, np.nan)

@@ -154,9 +154,10 @@ class Scene:
             return (a * (math.cos(alpha) - 1.0), b * math.sin(alpha), 0.0)
         if p.path == "step":
             return (float(self._step[0]), float(self._step[1]), float(self._step[2]))
-        if p.path == "waypoints":
+        if p.path == "waypoints" and self._waypoints is not None:
             wt, wxyz = self._waypoints
-            return tuple(float(np.interp(t, wt, wxyz[:, k])) for k in range(3))
+            return (float(np.interp(t, wt, wxyz[:, 0])), float(np.interp(t, wt, wxyz[:, 1])),
+                    float(np.interp(t, wt, wxyz[:, 2])))
         return (0.0, 0.0, 0.0)
 
     def target_position(self, t: float | np.ndarray) -> np.ndarray:
