@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callab
 
 _SET = "set:"      # dest prefix of flags that set a run-config field (dest "set:twin.camera.fps")
 _OPT = "opt:"      # dest prefix of flags that set a field of a command's own options dataclass
+_PLAIN: dict[str, str] = {}   # dest of a config flag -> its plain attribute name (``--i-gain``: ``i_gain``)
 
 
 def command(name: str, help_text: str):
@@ -56,6 +57,7 @@ def config_flag(p: argparse.ArgumentParser, flag: str, cls: type, dotted: str, *
     (read with :func:`option_values`) instead of the run config (read with :func:`cli_overrides`)."""
     tp, meta, default = field_info(cls, dotted)
     dest = (_OPT if options else _SET) + dotted
+    _PLAIN[dest] = flag.lstrip("-").replace("-", "_")
     text = help or _range_help(meta, default)
     if tp is bool:
         p.add_argument(flag, dest=dest, action="store_const", const=True, default=None, help=text)
@@ -267,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         if name == chosen:      # only the chosen command's options: their choices may import heavy modules
             options(sp)
     args = parser.parse_args(argv)
+    for dest, plain in _PLAIN.items():     # also as args.i_gain etc., for code that reads flags directly
+        if dest in vars(args) and plain not in vars(args):
+            setattr(args, plain, getattr(args, dest))
     verbose, quiet = getattr(args, "verbose", False), getattr(args, "quiet", False)
     _setup_logging(verbose, quiet)
     if not args.command:

@@ -88,9 +88,13 @@ def _load_waypoints(path: str, name: str = "scene.waypoints_file") -> tuple[np.n
     if not {"t", "x", "y", "z"} <= set(header):
         raise ConfigError(f"{name} = {path!r}: header must name columns t,x,y,z, found {','.join(header)!r}")
     cols = [header.index(c) for c in "txyz"]
+    short = [k for k, r in enumerate(rows) if len(r) <= max(cols)]
+    if short:
+        raise ConfigError(f"{name} = {path!r}: row {short[0] + 2} has {len(rows[short[0]])} values, "
+                          f"{len(header)} columns expected")
     try:
         values = np.array([[float(r[i]) for i in cols] for r in rows], dtype=float).reshape(-1, 4)
-    except (IndexError, ValueError) as exc:
+    except ValueError as exc:
         raise ConfigError(f"{name} = {path!r}: needs numeric columns t,x,y,z ({exc})") from None
     t, xyz = values[:, 0], values[:, 1:]
     if t.size == 0:
