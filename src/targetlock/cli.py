@@ -225,7 +225,7 @@ def _setup_logging(verbose: bool, quiet: bool) -> None:
     from .experiments.runfolder import LOG_FORMAT
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     root = logging.getLogger()
-    root.setLevel(logging.DEBUG)     # run.log records everything; the console shows ``level`` and up
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)   # run.log records this; the console ``level`` and up
     console = logging.StreamHandler(sys.stderr)
     console.setLevel(level)
     console.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))

@@ -143,6 +143,9 @@ class RunFolder:
         self._log_handler = logging.FileHandler(self.path / "run.log", encoding="utf-8")
         self._log_handler.setFormatter(logging.Formatter(LOG_FORMAT))
         logging.getLogger().addHandler(self._log_handler)
+        ours = logging.getLogger("targetlock")
+        if ours.getEffectiveLevel() > logging.INFO:     # run.log keeps at least targetlock's INFO messages
+            ours.setLevel(logging.INFO)
         self._finalizer = weakref.finalize(self, _detach, self._log_handler)
         RunFolder.latest = self.path
         log.info("run folder %s (%s)", self.path, kind)
