@@ -220,8 +220,10 @@ def test_bus_and_drive_exceptions_map_to_device_errors():
     import can
     from canopen.sdo.exceptions import SdoAbortedError
 
+    from targetlock.interfaces.natnet import NatNetParseError
     from targetlock.rig.base import DriveFault
-    for exc in (can.CanOperationError("bus off"), SdoAbortedError(0x06090030), DriveFault("node 1: NMT stopped")):
+    for exc in (can.CanOperationError("bus off"), SdoAbortedError(0x06090030), DriveFault("node 1: NMT stopped"),
+                NatNetParseError("server speaks NatNet 2.10; 3.x or 4.x supported")):
         assert isinstance(as_user_error(exc), DeviceError), exc
 
 
@@ -237,3 +239,14 @@ def test_run_log_and_quiet(capsys, tmp_path):
     assert " INFO " not in capsys.readouterr().err
     log = (tmp_path / "r" / "run.log").read_text()
     assert " INFO targetlock" in log and "run finished" in log
+
+
+def test_sim_rig_without_rig_serves_the_loopback_rig_of_the_example():
+    """`sim-rig` with no --rig must serve what its help promises (udp_loopback, NatNet on 127.0.0.1),
+    which is what `run --rig examples/twin_rig.toml` connects to, not socketcan can0."""
+    from targetlock.commands import LOOPBACK_RIG
+    from targetlock.config import from_dict
+    from targetlock.interfaces.rigfile import HardwareRigConfig, load_rig_file
+    default = from_dict(HardwareRigConfig, LOOPBACK_RIG)
+    assert default.can.bus.interface == "udp_loopback" and default.natnet.server_ip == "127.0.0.1"
+    assert default == load_rig_file(Path(__file__).parent.parent / "examples" / "twin_rig.toml")

@@ -99,6 +99,9 @@ def as_user_error(exc: BaseException) -> TargetlockError | None:
     rig_base = sys.modules.get("targetlock.rig.base")
     if rig_base is not None and isinstance(exc, rig_base.DriveFault):
         return DeviceError(f"drives: {exc}; check the drives and the bus (details in run.log), then re-run")
+    natnet = sys.modules.get("targetlock.interfaces.natnet")
+    if natnet is not None and isinstance(exc, natnet.NatNetParseError):
+        return DeviceError(f"NatNet server: {exc}; check Motive's streaming settings (NatNet 3.x or 4.x)")
     can = sys.modules.get("can")
     if can is not None and isinstance(exc, can.CanError):
         return DeviceError(f"CAN bus: {exc}; check the interface (`ip link show`) or the rig file's [can.bus]")
