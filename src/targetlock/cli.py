@@ -221,12 +221,24 @@ def _load_extra_commands() -> None:
     from . import commands  # noqa: F401  (registers its commands on import)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (main() may be called in-process, e.g. by tests)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def _setup_logging(verbose: bool, quiet: bool) -> None:
     from .experiments.runfolder import LOG_FORMAT
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     root = logging.getLogger()
     root.setLevel(logging.DEBUG if verbose else logging.INFO)   # run.log records this; the console ``level`` and up
-    console = logging.StreamHandler(sys.stderr)
+    console = _StderrHandler()
     console.setLevel(level)
     console.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))
     console.set_name("targetlock-console")
