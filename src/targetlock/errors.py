@@ -88,6 +88,16 @@ def _os_error(exc: OSError) -> TargetlockError:
     return InputFileError(f"{why}{where}")
 
 
+# (module, exception class, one-line message) of the device errors of libraries and drivers
+_LIBRARY_ERRORS = (
+    ("targetlock.rig.base", "DriveFault", "drives: {exc}; check the drives and the bus (details in run.log), then re-run"),
+    ("targetlock.interfaces.natnet", "NatNetParseError",
+     "NatNet server: {exc}; check Motive's streaming settings (NatNet 3.x or 4.x)"),
+    ("can", "CanError", "CAN bus: {exc}; check the interface (`ip link show`) or the rig file's [can.bus]"),
+    ("canopen.sdo.exceptions", "SdoError", "CANopen SDO: {exc}; check node ids and that the drives are powered"),
+)
+
+
 def as_user_error(exc: BaseException) -> TargetlockError | None:
     """The user-facing error for ``exc``, or None if it is not an expected failure (a bug)."""
     if isinstance(exc, TargetlockError):
@@ -96,18 +106,10 @@ def as_user_error(exc: BaseException) -> TargetlockError | None:
         return InputFileError(f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); save it as UTF-8")
     # Library exceptions are looked up only if the library was imported: mapping must not import
     # python-can, canopen or the rig code just to print an error.
-    rig_base = sys.modules.get("targetlock.rig.base")
-    if rig_base is not None and isinstance(exc, rig_base.DriveFault):
-        return DeviceError(f"drives: {exc}; check the drives and the bus (details in run.log), then re-run")
-    natnet = sys.modules.get("targetlock.interfaces.natnet")
-    if natnet is not None and isinstance(exc, natnet.NatNetParseError):
-        return DeviceError(f"NatNet server: {exc}; check Motive's streaming settings (NatNet 3.x or 4.x)")
-    can = sys.modules.get("can")
-    if can is not None and isinstance(exc, can.CanError):
-        return DeviceError(f"CAN bus: {exc}; check the interface (`ip link show`) or the rig file's [can.bus]")
-    sdo = sys.modules.get("canopen.sdo.exceptions")
-    if sdo is not None and isinstance(exc, sdo.SdoError):
-        return DeviceError(f"CANopen SDO: {exc}; check node ids and that the drives are powered")
+    for module, name, hint in _LIBRARY_ERRORS:
+        lib = sys.modules.get(module)
+        if lib is not None and isinstance(exc, getattr(lib, name)):
+            return DeviceError(hint.format(exc=exc))
     if isinstance(exc, OSError):
         return _os_error(exc)
     return None
