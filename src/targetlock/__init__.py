@@ -5,5 +5,114 @@ Layout (design notes §1): ``model`` (physics of the endoscope, drives, camera, 
 and clocks), ``controllers`` (PI, PI + hysteresis compensation, inverse kinematics),
 ``vision`` (renderer and trackers), ``experiments`` (the report's procedures, run folders) and
 ``interfaces`` (CANopen drives, NatNet motion capture).
+
+The small public API (reference: docs/api.md) is importable from here; names are loaded on first
+use, so ``import targetlock`` stays cheap::
+
+    import targetlock
+    cfg = targetlock.load_config("runs/run-.../config.toml")      # or targetlock.RunConfig(...)
+    summary = targetlock.run(cfg, out="runs/mine")                # dict: rms_px, peak_px, ...
 """
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
 __version__ = "0.1.0"
+
+# public name -> module that defines it (imported lazily by __getattr__)
+_LAZY = {
+    # configuration
+    "RunConfig": "targetlock.experiments.target_lock",
+    "TwinConfig": "targetlock.model.twin",
+    "ControllerConfig": "targetlock.controllers.base",
+    "LoopConfig": "targetlock.loop.runner",
+    "CameraParams": "targetlock.model.camera",
+    "SceneParams": "targetlock.model.scene",
+    "HardwareRigConfig": "targetlock.interfaces.rigfile",
+    "from_dict": "targetlock.config",
+    "to_dict": "targetlock.config",
+    "load_toml": "targetlock.config",
+    "save_toml": "targetlock.config",
+    "replace_path": "targetlock.config",
+    "describe": "targetlock.config",
+    # interfaces a rig or a controller implements
+    "Rig": "targetlock.rig.base",
+    "Drives": "targetlock.rig.base",
+    "ObservationSource": "targetlock.rig.base",
+    "Observation": "targetlock.rig.base",
+    "DriveFault": "targetlock.rig.base",
+    "Controller": "targetlock.controllers.base",
+    "SimulatedRig": "targetlock.rig.simulated",
+    "RunFolder": "targetlock.experiments.runfolder",
+    # errors
+    "TargetlockError": "targetlock.errors",
+    "ConfigError": "targetlock.errors",
+}
+
+__all__ = ["__version__", "run", "load_config", *_LAZY]
+
+if TYPE_CHECKING:   # for type checkers and editors; at run time these load on first use
+    from .config import describe, from_dict, load_toml, replace_path, save_toml, to_dict
+    from .controllers.base import Controller, ControllerConfig
+    from .errors import ConfigError, TargetlockError
+    from .experiments.runfolder import RunFolder
+    from .experiments.target_lock import RunConfig
+    from .interfaces.rigfile import HardwareRigConfig
+    from .loop.runner import LoopConfig
+    from .model.camera import CameraParams
+    from .model.scene import SceneParams
+    from .model.twin import TwinConfig
+    from .rig.base import DriveFault, Drives, Observation, ObservationSource, Rig
+    from .rig.simulated import SimulatedRig
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'targetlock' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
+
+def load_config(path: str | Path) -> RunConfig:
+    """The validated :class:`RunConfig` of a TOML file (e.g. a run folder's ``config.toml``);
+    raises :class:`ConfigError` listing every bad setting."""
+    from .config import load_toml
+    from .experiments.target_lock import RunConfig
+    return load_toml(RunConfig, path)
+
+
+def run(config: RunConfig | dict | str | Path | None = None, *, out: str | Path | None = None,
+        overwrite: bool = False, progress: bool = False) -> dict:
+    """Run the closed-loop target lock on the digital twin, like ``targetlock run``.
+
+    ``config``: a :class:`RunConfig`, a nested dict of settings (as in TOML), a TOML file, or
+    None for the defaults; validated first (:class:`ConfigError`). ``out``: a run folder to write
+    (config, time series, plots, run.log); an earlier run there is replaced only with
+    ``overwrite``. Returns the summary: errors in px (``rms_px``, ``peak_px``, ``p95_px``,
+    ``mean_px``), ``lost_fraction``, ``tip_range_deg`` and timing; keys starting with ``_`` hold
+    the recorded arrays.
+    """
+    from .config import from_dict, validate
+    from .experiments.runfolder import RunFolder
+    from .experiments.target_lock import RunConfig, run_target_lock
+    if config is None:
+        cfg = RunConfig()
+    elif isinstance(config, RunConfig):
+        cfg = config
+    elif isinstance(config, dict):
+        cfg = from_dict(RunConfig, config)
+    else:
+        cfg = load_config(config)
+    validate(cfg)
+    if out is None:
+        return run_target_lock(cfg, progress=progress)
+    with RunFolder("run", cfg, out, overwrite=overwrite) as folder:
+        return run_target_lock(folder.config, folder, progress=progress)

@@ -2,69 +2,80 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
+import errno
+import logging
 import os
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from .cli import _common, command
-from .controllers.base import CONTROLLERS
-from .model.scene import PATHS
-from .model.twin import PRESETS as PRESETS_CHOICES
+from .cli import _common, _out_options, cli_overrides, command, config_flag, option_values
+from .config import ConfigError, field_info, param, replace_path
+from .errors import DeviceError
+from .presets import PRESETS
 
-PATH_CHOICES = [p for p in PATHS if p != "waypoints"]
+log = logging.getLogger(__name__)
+
+PATH_CHOICES = ("linear", "ellipse", "step", "static")
 
 
 def _loop_options(p: argparse.ArgumentParser) -> None:
+    from .experiments.target_lock import RunConfig
     _common(p)
     p.add_argument("--path", metavar="PATH", help=f"target path: {', '.join(PATH_CHOICES)} or a CSV file (t,x,y,z)")
-    p.add_argument("--latency", type=float, metavar="S", help="video latency (s, default 0.4)")
-    p.add_argument("--fps", type=float, help="camera frame rate (default 22)")
-    p.add_argument("--i-gain", type=float, metavar="I", help="integral gain I (tick/(px·s), default 300)")
-    p.add_argument("--p-gain", type=float, metavar="P", help="proportional gain P (tick/px, default 0)")
-    p.add_argument("--hc-width", type=float, metavar="W", help="compensation width w of model 1 (default 0.2)")
-    p.add_argument("--seconds", type=float, help="run length (s, default 40)")
-    p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--noise", type=float, metavar="PX", help="tracker noise (px standard deviation)")
-    p.add_argument("--drop", type=float, metavar="P", help="probability of a dropped frame")
-    p.add_argument("--outliers", type=float, metavar="P", help="probability of an outlier observation")
-    p.add_argument("--realtime", action="store_true", help="run on the wall clock")
-    p.add_argument("--vision", action="store_true", help="render endoscope frames and track them (instead of the "
-                                                         "ideal projection)")
-    p.add_argument("--tracker", choices=("feature", "marker"), help="tracker with --vision (default feature)")
+    for flag, dotted in (("--latency", "twin.camera.latency"), ("--fps", "twin.camera.fps"),
+                         ("--i-gain", "controller.i_gain"), ("--p-gain", "controller.p_gain"),
+                         ("--hc-width", "controller.hc_width"), ("--seconds", "loop.seconds"),
+                         ("--noise", "tracker.noise_px"), ("--drop", "tracker.drop_probability"),
+                         ("--outliers", "tracker.outlier_probability"), ("--realtime", "realtime"),
+                         ("--vision", "vision"), ("--tracker", "vision_tracker")):
+        config_flag(p, flag, RunConfig, dotted)
+    config_flag(p, "--seed", RunConfig, "seed", help="random seed of the run and of the tracker noise "
+                                                     "(seed and tracker.seed)")
 
 
 def _overrides(args: argparse.Namespace) -> dict:
-    """Nested config overrides from the common loop flags."""
-    o: dict = {"twin": {"camera": {}, "scene": {}}, "controller": {}, "loop": {}, "tracker": {}}
-    if getattr(args, "controller", None):
-        o["controller"]["kind"] = args.controller
+    """Nested config overrides from the loop flags and --set."""
+    from .model.twin import merge
+    o = cli_overrides(args)
     if args.path:
         if args.path in PATH_CHOICES:
-            o["twin"]["scene"]["path"] = args.path
+            o = merge(o, {"twin": {"scene": {"path": args.path}}})
         else:
-            o["twin"]["scene"].update(path="waypoints", waypoints_file=str(Path(args.path).resolve()))
-    for flag, section, key in (("latency", "camera", "latency"), ("fps", "camera", "fps")):
-        if getattr(args, flag) is not None:
-            o["twin"][section][key] = getattr(args, flag)
-    for flag, key in (("i_gain", "i_gain"), ("p_gain", "p_gain"), ("hc_width", "hc_width")):
-        if getattr(args, flag, None) is not None:
-            o["controller"][key] = getattr(args, flag)
-    if args.seconds is not None:
-        o["loop"]["seconds"] = args.seconds
-    for flag, key in (("noise", "noise_px"), ("drop", "drop_probability"), ("outliers", "outlier_probability")):
-        if getattr(args, flag) is not None:
-            o["tracker"][key] = getattr(args, flag)
-    if args.seed is not None:
-        o["seed"] = args.seed
-        o["tracker"]["seed"] = args.seed
-    if args.realtime:
-        o["realtime"] = True
-    if args.vision:
-        o["vision"] = True
-    if args.tracker:
-        o["vision_tracker"] = args.tracker
+            o = merge(o, {"twin": {"scene": {"path": "waypoints", "waypoints_file": str(Path(args.path).resolve())}}})
+    seed = o.get("seed")
+    if seed is not None and "seed" not in o.get("tracker", {}):
+        o = merge(o, {"tracker": {"seed": seed}})
     return o
+
+
+def _loop_config(args: argparse.Namespace, base: dict | None = None):
+    """The validated run config of a loop command; ``--tracker`` without vision is refused."""
+    from .experiments.common import build_config
+    from .experiments.target_lock import RunConfig
+    from .model.twin import merge
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=merge(base or {}, _overrides(args)))
+    if vars(args).get("set:vision_tracker") is not None and not cfg.vision:
+        raise ConfigError(f"--tracker {cfg.vision_tracker} needs vision: add --vision (or vision = true in the config)")
+    return cfg
+
+
+def _each_valid(cfg, dotted: str, values, flag: str) -> list:
+    """Validate each value of a list option as config field ``dotted``; one ConfigError lists every bad one."""
+    errors = []
+    for v in values:
+        try:
+            replace_path(cfg, dotted, v)
+        except ConfigError as exc:
+            errors += exc.errors
+    if errors:
+        raise ConfigError(errors=errors, where=flag)
+    return list(values)
+
+
+def _progress(total: int, unit: str):
+    from tqdm import tqdm
+    return tqdm(total=total, unit=unit, file=sys.stderr, leave=False, disable=None)
 
 
 def _print_summary(s: dict) -> None:
@@ -80,7 +91,8 @@ def _print_summary(s: dict) -> None:
 
 # --------------------------------------------------------------------------------------------- run
 def _run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi-hc)")
+    from .experiments.target_lock import RunConfig
+    config_flag(p, "--controller", RunConfig, "controller.kind")
     p.add_argument("--rig", metavar="FILE", help="run on the rig this file describes (CANopen drives, NatNet, "
                                                  "observations) on the wall clock, instead of the in-process twin")
     p.add_argument("--video", metavar="FILE.mp4", help="with --vision: write the endoscope view with the tracked "
@@ -90,27 +102,30 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 
 @command("run", "closed-loop target lock on the digital twin: the main job")(_run_options)
 def _run(args: argparse.Namespace) -> int:
-    from .experiments.common import build_config, print_json_last
-    from .experiments.runfolder import RunFolder
-    from .experiments.target_lock import RunConfig, run_target_lock
+    from .experiments.common import print_json_last
+    from .experiments.runfolder import RunFolder, check_writable
+    from .experiments.target_lock import run_target_lock
 
-    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
+    cfg = _loop_config(args)
     if args.video and not cfg.vision:
-        from .config import ConfigError
         raise ConfigError("--video needs --vision (frames are rendered only with vision)")
+    if args.video:
+        check_writable(args.video, "--video")      # before any work, not after the run
     hw = None
     if args.rig:
         from .interfaces.rigfile import load_rig_file
         hw = load_rig_file(args.rig)          # validate before anything moves or a folder is made
-    run = RunFolder("run", cfg, args.out)
-    if hw is not None:
-        from .config import save_toml
-        from .rig.hardware import HardwareRig
-        save_toml(hw, run.file("rig.toml"))
-        with HardwareRig(hw, cfg.twin.camera) as rig:
-            s = run_target_lock(cfg, run, progress=True, rig=rig)
-    else:
-        s = run_target_lock(cfg, run, progress=True, video=args.video)
+    with RunFolder("run", cfg, args.out, overwrite=args.overwrite) as run:
+        cfg = run.config                      # input files now point at the run folder's copies
+        if hw is not None:
+            from .config import save_toml
+            from .rig.hardware import HardwareRig
+            save_toml(hw, run.file("rig.toml"))
+            with HardwareRig(hw, cfg.twin.camera) as rig:
+                s = run_target_lock(cfg, run, progress=True, rig=rig)
+        else:
+            s = run_target_lock(cfg, run, progress=True, video=args.video)
+        log.info("run finished: rms %.1f px, peak %.1f px", s["rms_px"], s["peak_px"])
     _print_summary(s)
     if "vision" in s:
         v = s["vision"]
@@ -130,33 +145,40 @@ def _run(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------- step response
 def _step_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--controller", choices=CONTROLLERS, help="controller (default pi)")
+    from .experiments.target_lock import RunConfig
+    config_flag(p, "--controller", RunConfig, "controller.kind", help="controller (default pi)")
+    _, meta, _ = field_info(RunConfig, "controller.i_gain")
     p.add_argument("--i-values", type=float, nargs="+", metavar="I", default=[100, 200, 300, 400, 500],
-                   help="I values to compare (tick/(px·s))")
+                   help=f"I values to compare ({meta['unit']}), each checked like controller.i_gain; "
+                        "default 100 200 300 400 500")
     _loop_options(p)
 
 
 @command("step-response", "step responses for several I values (report §5.2, Fig. 6.1)")(_step_options)
 def _step(args: argparse.Namespace) -> int:
-    from .experiments.common import build_config, print_json_last
+    from .experiments.common import print_json_last
     from .experiments.runfolder import RunFolder
     from .experiments.step_response import plot_step_responses, run_step_responses
-    from .experiments.target_lock import RunConfig
-    from .model.twin import merge
 
     base = {"twin": {"scene": {"path": "step", "start_tip_deg": [0.0, 0.0], "start_delay": 0.0}},
             "controller": {"kind": "pi"}, "loop": {"seconds": 5.0, "metrics_after": 0.0}}
-    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=merge(base, _overrides(args)))
-    run = RunFolder("step-response", cfg, args.out)
-    results = run_step_responses(cfg, args.i_values)
-    with run.timeseries(["i_gain", "t", "offset_x_px"]) as ts:
-        for r in results:
-            for t, x in zip(r["_t"], r["_x"]):
-                ts.write([r["i_gain"], t, x])
-    plot_step_responses(results, cfg, run.file("step_response.png"))
-    rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in results]
-    summary = {"step_px": cfg.twin.scene.step_offset_px[0], "responses": rows, "run_folder": str(run.path)}
-    run.write_summary(summary)
+    cfg = _loop_config(args, base)
+    i_values = _each_valid(cfg, "controller.i_gain", args.i_values, "--i-values")
+    with RunFolder("step-response", cfg, args.out, overwrite=args.overwrite) as run:
+        cfg = run.config
+        results = []
+        with _progress(len(i_values), "response") as bar:
+            for i in i_values:
+                results += run_step_responses(cfg, [i])
+                bar.update(1)
+        with run.timeseries(["i_gain", "t", "offset_x_px"]) as ts:
+            for r in results:
+                for t, x in zip(r["_t"], r["_x"]):
+                    ts.write([r["i_gain"], t, x])
+        plot_step_responses(results, cfg, run.file("step_response.png"))
+        rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in results]
+        summary = {"step_px": cfg.twin.scene.step_offset_px[0], "responses": rows, "run_folder": str(run.path)}
+        run.write_summary(summary)
     print(f"step response from {cfg.twin.scene.step_offset_px[0]:g} px, {cfg.controller.kind}, "
           f"latency {cfg.twin.camera.latency:g} s")
     print(f"{'I':>6} {'rise (s)':>9} {'overshoot (px)':>15} {'overshoot (%)':>14} {'settling (s)':>13}")
@@ -171,32 +193,39 @@ def _step(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------- compare
 def _compare_options(p: argparse.ArgumentParser) -> None:
+    from .controllers.base import CONTROLLERS
     p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=["pi", "pi-hc", "ik"],
-                   help="controllers to compare")
-    p.add_argument("--latencies", type=float, nargs="+", metavar="S", help="latencies to compare (s)")
+                   help="controllers to compare (default pi pi-hc ik)")
+    p.add_argument("--latencies", type=float, nargs="+", metavar="S",
+                   help="latencies to compare (s), each checked like twin.camera.latency (default: the config's)")
     _loop_options(p)
 
 
 @command("compare", "several controllers and/or latencies on the same path: table and overlay plot")(_compare_options)
 def _compare(args: argparse.Namespace) -> int:
-    from .experiments.common import build_config, print_json_last
+    from .experiments.common import print_json_last
     from .experiments.compare import compare, plot_compare
     from .experiments.runfolder import RunFolder
-    from .experiments.target_lock import RunConfig
 
-    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=_overrides(args))
-    run = RunFolder("compare", cfg, args.out)
-    latencies = args.latencies or [cfg.twin.camera.latency]
-    rows = compare(cfg, args.controllers, latencies)
-    plot_compare(rows, cfg, run.file("compare.png"))
-    table = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
-    with run.timeseries(["case", "t", "err_x", "err_y", "err"]) as ts:
-        for i, r in enumerate(rows):
-            d = r["_data"]
-            for row in d:
-                ts.write([i, row[0], row[1], row[2], row[3]])
-    summary = {"path": cfg.twin.scene.path, "rows": table, "run_folder": str(run.path)}
-    run.write_summary(summary)
+    cfg = _loop_config(args)
+    latencies = _each_valid(cfg, "twin.camera.latency", args.latencies or [cfg.twin.camera.latency], "--latencies")
+    _each_valid(cfg, "controller.kind", args.controllers, "--controllers")   # cross-field rules per controller
+    with RunFolder("compare", cfg, args.out, overwrite=args.overwrite) as run:
+        cfg = run.config
+        rows = []
+        with _progress(len(latencies) * len(args.controllers), "case") as bar:
+            for lat in latencies:
+                for kind in args.controllers:
+                    rows += compare(cfg, [kind], [lat])
+                    bar.update(1)
+        plot_compare(rows, cfg, run.file("compare.png"))
+        table = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+        with run.timeseries(["case", "t", "err_x", "err_y", "err"]) as ts:
+            for i, r in enumerate(rows):
+                for row in r["_data"]:
+                    ts.write([i, row[0], row[1], row[2], row[3]])
+        summary = {"path": cfg.twin.scene.path, "rows": table, "run_folder": str(run.path)}
+        run.write_summary(summary)
     print(f"comparison on the {cfg.twin.scene.path} path ({cfg.loop.seconds:g} s, preset {cfg.twin.preset!r})")
     print(f"{'controller':>10} {'latency (s)':>11} {'rms (px)':>9} {'peak (px)':>10} {'p95 (px)':>9}")
     for r in table:
@@ -208,11 +237,19 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------- latency
+@dataclass(frozen=True)
+class LatencyOptions:
+    """Options of ``targetlock latency``."""
+    inject_frame: int = param(20, unit="frame", lo=1, hi=1000,
+                              doc="frame at which the programmed offset starts (the run lasts until it is seen)")
+
+
 def _latency_options(p: argparse.ArgumentParser) -> None:
+    from .experiments.target_lock import RunConfig
     _common(p)
-    p.add_argument("--latency", type=float, metavar="S", help="configured video latency of the twin (s)")
-    p.add_argument("--fps", type=float, help="camera frame rate")
-    p.add_argument("--inject-frame", type=int, default=20, help="frame at which the programmed offset starts")
+    config_flag(p, "--latency", RunConfig, "twin.camera.latency")
+    config_flag(p, "--fps", RunConfig, "twin.camera.fps")
+    config_flag(p, "--inject-frame", LatencyOptions, "inject_frame", options=True)
 
 
 @command("latency", "measure the loop latency by counting frames until the handle moves (report §3.4.2)")(_latency_options)
@@ -222,16 +259,15 @@ def _latency(args: argparse.Namespace) -> int:
     from .experiments.runfolder import RunFolder
     from .experiments.target_lock import RunConfig
 
-    over: dict = {"twin": {"camera": {}}}
-    if args.latency is not None:
-        over["twin"]["camera"]["latency"] = args.latency
-    if args.fps is not None:
-        over["twin"]["camera"]["fps"] = args.fps
-    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=over)
-    run = RunFolder("latency", cfg, args.out)
-    r = measure_latency(cfg, inject_frame=args.inject_frame)
-    r["run_folder"] = str(run.path)
-    run.write_summary(r)
+    opts = option_values(LatencyOptions, args, "latency options")
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=cli_overrides(args))
+    cam = cfg.twin.camera
+    # Long enough to see the response to the injected frame: its time, the latency and one second.
+    seconds = max(4.0, opts.inject_frame / cam.fps + cam.latency + 1.0)
+    with RunFolder("latency", cfg, args.out, overwrite=args.overwrite) as run:
+        r = measure_latency(run.config, inject_frame=opts.inject_frame, seconds=seconds)
+        r["run_folder"] = str(run.path)
+        run.write_summary(r)
     print(f"programmed offset at frame {r['inject_frame']}; the video shows the handle moving at frame "
           f"{r['first_moving_frame']}: {r['frames']} frames at {r['fps']:g} fps = {r['measured_latency_s']:.3f} s "
           f"(configured video latency {r['configured_latency_s']:g} s; resolution one frame, {r['resolution_s']:.3f} s)")
@@ -241,12 +277,29 @@ def _latency(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------- sim-rig
+@dataclass(frozen=True)
+class SimRigOptions:
+    """Options of ``targetlock sim-rig``."""
+    duration: float = param(0.0, unit="s", lo=0.0, hi=31 * 86400.0, doc="stop after this many seconds (0: until Ctrl-C)")
+
+
+# What ``sim-rig`` serves without --rig (as examples/twin_rig.toml): drives on the udp_loopback bus,
+# NatNet unicast on 127.0.0.1; everything stays on this machine.
+LOOPBACK_RIG = {
+    "can": {"node_ids": [1, 2], "homing_method": 37,
+            "bus": {"interface": "udp_loopback", "channel": "239.255.0.1", "port": 43113}},
+    "natnet": {"server_ip": "127.0.0.1", "local_ip": "127.0.0.1", "multicast": False},
+}
+
+
 def _sim_rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", metavar="FILE", help="rig file whose [can], [natnet] and [observations] the twin serves "
-                                                 "(default: udp_loopback bus, NatNet on 127.0.0.1)")
+                                                 "(default: udp_loopback bus 239.255.0.1:43113, NatNet on 127.0.0.1, "
+                                                 "as examples/twin_rig.toml)")
     p.add_argument("--config", metavar="FILE", help="run config (TOML) whose twin settings to simulate")
-    p.add_argument("--preset", choices=PRESETS_CHOICES, help="endoscope preset")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+    p.add_argument("--preset", choices=PRESETS, help="endoscope preset")
+    p.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help="set any run-config field")
+    config_flag(p, "--duration", SimRigOptions, "duration", options=True)
 
 
 @command("sim-rig", "serve the digital twin over CANopen (CiA 402) and NatNet for `run --rig`")(_sim_rig_options)
@@ -254,37 +307,54 @@ def _sim_rig(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    from .config import from_dict
     from .experiments.common import build_config
     from .experiments.target_lock import RunConfig
     from .interfaces.rigfile import HardwareRigConfig, load_rig_file
     from .rig.twin_process import serve_twin_rig
 
-    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset)
-    hw = load_rig_file(args.rig) if args.rig else HardwareRigConfig()
+    opts = option_values(SimRigOptions, args, "sim-rig options")
+    cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=cli_overrides(args))
+    hw = load_rig_file(args.rig) if args.rig else from_dict(HardwareRigConfig, LOOPBACK_RIG)
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.duration > 0:
-        timer = threading.Timer(args.duration, stop.set)
+    if opts.duration > 0:
+        timer = threading.Timer(opts.duration, stop.set)
         timer.daemon = True
         timer.start()
     try:
         serve_twin_rig(hw, cfg.twin, stop, on_ready=lambda line: print(line, flush=True))
     except KeyboardInterrupt:
         pass
+    except OSError as exc:
+        if exc.errno != errno.EADDRINUSE:
+            raise
+        n, bus = hw.natnet, hw.can.bus
+        raise DeviceError(f"port in use: NatNet {n.command_port}/{n.data_port} (UDP) or CAN bus {bus.interface} port "
+                          f"{bus.port}; is another sim-rig or Motive running? Stop it or choose other ports "
+                          "with --rig FILE") from exc
     finally:
         stop.set()
     return 0
 
 
 # --------------------------------------------------------------------------------------------- vision-eval
+@dataclass(frozen=True)
+class VisionEvalOptions:
+    """Options of ``targetlock vision-eval`` beside its settings."""
+    seed: int = param(0, lo=0, hi=2**32 - 1, doc="random seed of the rendered sequences")
+
+
 def _vision_eval_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tracker", choices=("feature", "marker"), help="tracker under test (default feature)")
-    p.add_argument("--sequences", nargs="+", metavar="NAME", help="sequences to run (default: all)")
-    p.add_argument("--frames", type=int, help="frames per sequence (default 66)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the rendered sequences")
-    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/vision-eval-<time>)")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
+    from .vision.evaluate import SEQUENCES, EvalSettings
+    config_flag(p, "--tracker", EvalSettings, "tracker")
+    p.add_argument("--sequences", nargs="+", metavar="NAME", dest="set:sequences",
+                   help=f"sequences to run (default: all): {', '.join(SEQUENCES)}")
+    config_flag(p, "--frames", EvalSettings, "frames")
+    config_flag(p, "--seed", VisionEvalOptions, "seed", options=True)
+    p.add_argument("--set", action="append", metavar="FIELD=VALUE", help="set any field of the evaluation settings")
+    _out_options(p)
 
 
 @command("vision-eval", "score the tracker on rendered sequences with known ground truth")(_vision_eval_options)
@@ -294,16 +364,23 @@ def _vision_eval(args: argparse.Namespace) -> int:
     from .experiments.runfolder import RunFolder
     from .vision.evaluate import EvalSettings, evaluate
 
-    over = {k: v for k, v in (("tracker", args.tracker), ("sequences", args.sequences), ("frames", args.frames))
-            if v is not None}
-    settings = from_dict(EvalSettings, over)
-    run = RunFolder("vision-eval", settings, args.out)
-    res = evaluate(settings, seed=args.seed, progress=lambda line: print("  " + line, flush=True))
-    o = res["overall"]
-    summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
-               "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"], "tracker": settings.tracker,
-               "seed": args.seed, "sequences": res["sequences"], "run_folder": str(run.path)}
-    run.write_summary(summary)
+    opts = option_values(VisionEvalOptions, args, "vision-eval options")
+    try:
+        settings = from_dict(EvalSettings, cli_overrides(args))
+    except ConfigError as exc:
+        raise ConfigError(errors=exc.errors, where="vision-eval options") from None
+    with RunFolder("vision-eval", settings, args.out, overwrite=args.overwrite) as run:
+        with _progress(len(settings.sequences), "sequence") as bar:
+            def progress(line: str) -> None:
+                log.info("%s", line)
+                bar.update(1)
+            res = evaluate(settings, seed=opts.seed, progress=progress)
+        o = res["overall"]
+        summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
+                   "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"],
+                   "tracker": settings.tracker, "seed": opts.seed, "sequences": res["sequences"],
+                   "run_folder": str(run.path)}
+        run.write_summary(summary)
     print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames): "
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
@@ -321,8 +398,7 @@ def _sweep_options(p: argparse.ArgumentParser) -> None:
                                                             "(default: one per core)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask scheduler (tcp://host:8786) "
                                                           "instead of a local cluster")
-    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/sweep-<time>)")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
+    _out_options(p)
 
 
 @command("sweep", "run a grid or seeded random set of target-lock runs on Dask; one table of results")(_sweep_options)
@@ -339,28 +415,28 @@ def _sweep(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers = {args.workers} is out of range; allowed: [1, 512]")
     spec = load_spec(args.spec)
     cases = expand(spec)
-    run = RunFolder("sweep", spec, args.out)
-    names = write_case_configs(cases, run.file("cases"))
-    table = ResultsTable(run.file("results.csv"), varied_names(cases))
-    from tqdm import tqdm
-    bar = tqdm(total=len(cases), unit="run", disable=None)
+    with RunFolder("sweep", spec, args.out, overwrite=args.overwrite) as run:
+        names = write_case_configs(cases, run.file("cases"))
+        table = ResultsTable(run.file("results.csv"), varied_names(cases))
+        from tqdm import tqdm
+        bar = tqdm(total=len(cases), unit="run", disable=None)
 
-    def on_result(case, row):
-        table.add(case, row, names[case.index])
-        bar.update(1)
+        def on_result(case, row):
+            table.add(case, row, names[case.index])
+            bar.update(1)
 
-    t0 = time.perf_counter()
-    try:
-        rows = run_cases(cases, scheduler=args.scheduler, workers=args.workers, on_result=on_result)
-    finally:
-        table.close()
-        bar.close()
-    wall = time.perf_counter() - t0
-    workers = args.scheduler or str(args.workers or os.cpu_count())
-    summary = sweep_summary(spec, cases, rows, wall, workers)
-    plot_sweep(cases, rows, run.file("sweep.png"))
-    summary["run_folder"] = str(run.path)
-    run.write_summary(summary)
+        t0 = time.perf_counter()
+        try:
+            rows = run_cases(cases, scheduler=args.scheduler, workers=args.workers, on_result=on_result)
+        finally:
+            table.close()
+            bar.close()
+        wall = time.perf_counter() - t0
+        workers = args.scheduler or str(args.workers or os.cpu_count())
+        summary = sweep_summary(spec, cases, rows, wall, workers)
+        plot_sweep(cases, rows, run.file("sweep.png"))
+        summary["run_folder"] = str(run.path)
+        run.write_summary(summary)
     print(f"sweep: {len(cases)} runs in {wall:.1f} s on {workers} worker(s), {summary['case_seconds_median']:.2f} s per "
           f"run (median), workers busy {100 * summary['busy_fraction']:.0f} % of the time; {summary['failed']} failed")
     for g in summary["groups"]:

@@ -32,7 +32,7 @@ def test_marker_tracker_in_the_loop(capsys, tmp_path):
 
 
 def test_video_without_vision_is_refused(capsys, tmp_path):
-    assert main(["run", "--video", str(tmp_path / "x.mp4"), "--seconds", "1"]) == 2
+    assert main(["run", "--video", str(tmp_path / "x.mp4"), "--seconds", "3"]) == 2
     assert "--vision" in capsys.readouterr().err
 
 

@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 import json
-import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
-from ..config import ConfigError, from_dict
+from ..config import ConfigError, from_dict, parse_toml
 from ..model.twin import merge, preset_overrides
 
 __all__ = ["build_config", "print_json_last"]
@@ -17,20 +16,27 @@ T = TypeVar("T")
 def build_config(cls: type[T], *, config_file: str | Path | None = None, preset: str | None = None,
                  overrides: dict | None = None, twin_key: str = "twin") -> T:
     """Defaults, then ``config_file`` (TOML), then the named ``preset`` (endoscope settings of the
-    twin), then ``overrides`` (nested dict, e.g. from command-line flags); validated at the end."""
+    twin), then ``overrides`` (nested dict, e.g. from command-line flags); validated at the end.
+
+    The file is first validated on its own, so its problems are reported together and name the
+    file (and a scalar where a table belongs, such as ``twin = 5``, cannot vanish in the merge)."""
     data: dict[str, Any] = {}
     if config_file is not None:
+        where = f"--config {config_file}"
+        data = parse_toml(config_file, "--config")
         try:
-            data = tomllib.loads(Path(config_file).read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"--config {config_file}: no such file") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"--config {config_file}: not valid TOML: {exc}") from None
+            from_dict(cls, data)
+        except ConfigError as exc:
+            raise ConfigError(errors=exc.errors, where=where) from None
     if preset is not None:
         data = merge(data, {twin_key: merge(preset_overrides(preset), {"preset": preset})})
     if overrides:
         data = merge(data, overrides)
-    return from_dict(cls, data)
+    try:
+        return from_dict(cls, data)
+    except ConfigError as exc:
+        raise ConfigError(errors=exc.errors, where="options" if config_file is None else
+                          f"options with --config {config_file}") from None
 
 
 def print_json_last(summary: dict) -> None:

@@ -81,8 +81,8 @@ def _sweep_profile(cfg: HysteresisConfig) -> tuple[np.ndarray, np.ndarray]:
         seg = np.linspace(knots[i], knots[i + 1], n, endpoint=False)
         pos.append(seg)
         idx.append(np.full(n, phases[i]))
-    pos.append([knots[-1]])
-    idx.append([last])
+    pos.append(np.array([knots[-1]]))
+    idx.append(np.array([last]))
     return np.concatenate(pos), np.concatenate(idx).astype(int)
 
 
@@ -128,7 +128,7 @@ def run_sweep(cfg: HysteresisConfig) -> HysteresisResult:
     return _result(cfg, t, out[:, :, swept], out[:, :, 2 + swept], out[:, :, 2 + held], out[:, :, held], phase, n_pos)
 
 
-def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisResult:
+def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None, progress: bool = False) -> HysteresisResult:
     """The same sweep through a rig's drives, the tip measured by the rig (motion capture), in real time,
     sampled (setpoints sent, positions read) at ``cfg.sample_rate`` like the simulated sweep.
 
@@ -136,8 +136,12 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisRes
     ``rig`` needs ``drives`` and ``tip_measurement() -> (angles rad, capture time s monotonic)``.
     Handle angles are the drives' positions, interpolated to each motion-capture sample's capture
     time: a tip sample some milliseconds old must meet the handle angle of that moment (report §3.1).
+    ``progress``: a progress bar (sweep seconds) on stderr.
     """
+    import sys
     import time
+
+    from tqdm import tqdm
 
     from ..loop.clock import WallClock
     clock = clock or WallClock()
@@ -153,11 +157,15 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisRes
     tips = np.full((n_t, n, 2), np.nan)
     t_tip = np.full((n_t, n), np.nan)
     back = np.linspace(1.0, 0.0, int(3.0 * sample_rate))
+    bar = tqdm(total=round(n * (n_t + back.size) / sample_rate), unit="s", file=sys.stderr, leave=False,
+               disable=None if progress else True)
     clock.start()
     k_total = 0
     for c in range(n):
         for k in range(n_t):
             k_total += 1
+            if k_total % int(sample_rate) == 0:
+                bar.update(1)
             clock.sleep_until(k_total / sample_rate)
             drives.send_setpoints(np.rint(setpoints[k, c] / rpt).astype(np.int64))
             handle[k, c] = drives.positions() * rpt
@@ -166,8 +174,11 @@ def run_sweep_on_rig(cfg: HysteresisConfig, rig, *, clock=None) -> HysteresisRes
         last = setpoints[-1, c]
         for f in back:  # return to neutral before the next curve
             k_total += 1
+            if k_total % int(sample_rate) == 0:
+                bar.update(1)
             clock.sleep_until(k_total / sample_rate)
             drives.send_setpoints(np.rint(f * last / rpt).astype(np.int64))
+    bar.close()
     # Handle angle at each tip sample's capture time; a missed mocap sample holds the previous one.
     for c in range(n):
         for a in range(2):

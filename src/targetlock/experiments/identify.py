@@ -368,25 +368,26 @@ def plot_fit(sweep: Sweep, fitted_tip: np.ndarray, path) -> None:
     plt.close(fig)
 
 
-def run_identify(run_folder: str | Path, cfg: IdentifyConfig, out: str | Path | None = None) -> dict:
+def run_identify(run_folder: str | Path, cfg: IdentifyConfig, out: str | Path | None = None, *,
+                 overwrite: bool = False) -> dict:
     """``targetlock identify``: fit, write ``fitted.toml``, ``identify.png`` and ``summary.json``."""
     import time
 
     from .runfolder import RunFolder
     sweep = load_sweep(run_folder)
-    run = RunFolder("identify", cfg, out)
-    t0 = time.perf_counter()
-    res = identify(sweep, cfg.twin.endoscope, model_dt=cfg.twin.model_dt, n_starts=cfg.n_starts, seed=cfg.seed)
-    seconds = time.perf_counter() - t0
-    note = (f"Endoscope identified by 'targetlock identify' from {Path(run_folder).resolve()}\n"
-            f"(residual rms {res.rms_deg:.3f} deg). Use with --config. Only ratios to c^2*K_c are identified;\n"
-            f"cable_arm and cable_stiffness are the starting preset's and fix the scale (docs/model.md).")
-    (run.file("fitted.toml")).write_text(preset_toml(res.endoscope, cfg.twin.preset, note))
-    plot_fit(sweep, res.fitted_tip, run.file("identify.png"))
-    summary = {"source": sweep.source, "run_folder_measured": str(Path(run_folder)), **res.summary(),
-               "static_gain": static_gain(res.endoscope), "start_preset": cfg.twin.preset, "seconds": seconds,
-               "fitted_preset": str(run.file("fitted.toml")), "run_folder": str(run.path)}
-    run.write_summary(summary)
+    with RunFolder("identify", cfg, out, overwrite=overwrite) as run:
+        t0 = time.perf_counter()
+        res = identify(sweep, cfg.twin.endoscope, model_dt=cfg.twin.model_dt, n_starts=cfg.n_starts, seed=cfg.seed)
+        seconds = time.perf_counter() - t0
+        note = (f"Endoscope identified by 'targetlock identify' from {Path(run_folder).resolve()}\n"
+                f"(residual rms {res.rms_deg:.3f} deg). Use with --config. Only ratios to c^2*K_c are identified;\n"
+                f"cable_arm and cable_stiffness are the starting preset's and fix the scale (docs/model.md).")
+        (run.file("fitted.toml")).write_text(preset_toml(res.endoscope, cfg.twin.preset, note))
+        plot_fit(sweep, res.fitted_tip, run.file("identify.png"))
+        summary = {"source": sweep.source, "run_folder_measured": str(Path(run_folder)), **res.summary(),
+                   "static_gain": static_gain(res.endoscope), "start_preset": cfg.twin.preset, "seconds": seconds,
+                   "fitted_preset": str(run.file("fitted.toml")), "run_folder": str(run.path)}
+        run.write_summary(summary)
     return summary
 
 

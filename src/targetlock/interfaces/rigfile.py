@@ -41,4 +41,4 @@ class HardwareRigConfig:
 
 def load_rig_file(path: str | Path) -> HardwareRigConfig:
     """Read and validate a rig file; raises ConfigError naming the bad setting."""
-    return load_toml(HardwareRigConfig, path)
+    return load_toml(HardwareRigConfig, path, "rig file")

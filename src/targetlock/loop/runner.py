@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..config import param
+from ..config import ConfigError, param
 from ..controllers.base import Controller
 from ..rig.base import Observation, Rig
 from .clock import Clock, SimClock
@@ -25,6 +25,11 @@ class LoopConfig:
     rate: float = param(50.0, unit="Hz", lo=1.0, hi=2000.0, doc="control loop rate (report: 50 Hz)")
     seconds: float = param(40.0, unit="s", lo=0.02, hi=86400.0, doc="duration of the run")
     metrics_after: float = param(2.0, unit="s", lo=0.0, hi=3600.0, doc="error metrics ignore the first seconds")
+
+    def check(self, prefix: str = "") -> None:
+        if self.metrics_after >= self.seconds:
+            raise ConfigError(f"{prefix}metrics_after = {self.metrics_after:g} s leaves nothing to score in a run of "
+                              f"{prefix}seconds = {self.seconds:g} s; allowed: [0, {self.seconds:g}) s (or a longer run)")
 
 
 @dataclass

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import param
+from ..config import ConfigError, param
 
 __all__ = ["CameraParams", "project", "unproject", "world_to_camera", "LatencyLine"]
 
@@ -33,6 +33,12 @@ class CameraParams:
     k2: float = param(0.0, lo=-1.0, hi=1.0, doc="radial distortion r^4 coefficient")
     fps: float = param(22.0, unit="1/s", lo=0.1, hi=1000.0, doc="frame rate (report: 22 fps)")
     latency: float = param(0.4, unit="s", lo=0.0, hi=5.0, doc="capture-to-controller video latency (report: 0.4 s)")
+
+    def check(self, prefix: str = "") -> None:
+        for axis, c, size in (("x", self.cx, self.width), ("y", self.cy, self.height)):
+            if not 0.0 <= c <= size:
+                raise ConfigError(f"{prefix}c{axis} = {c:g} px lies outside the image (0 to {size} px wide); "
+                                  f"allowed: [0, {size}] px")
 
     @property
     def matrix(self) -> np.ndarray:
@@ -58,15 +64,15 @@ def project(points_cam: np.ndarray, cam: CameraParams, *, distort: bool = True) 
     """
     p = np.asarray(points_cam, dtype=float)
     if p.shape == (3,):  # one point: plain floats are several times faster than array ops
-        x, y, z = float(p[0]), float(p[1]), float(p[2])
-        if not z > 1e-9:
+        u, v, w = float(p[0]), float(p[1]), float(p[2])
+        if not w > 1e-9:
             return np.array([np.nan, np.nan])
-        x, y = x / z, y / z
+        u, v = u / w, v / w
         if distort and (cam.k1 or cam.k2):
-            r2 = x * x + y * y
+            r2 = u * u + v * v
             f = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2
-            x, y = x * f, y * f
-        return np.array([cam.fx * x + cam.cx, cam.fy * y + cam.cy])
+            u, v = u * f, v * f
+        return np.array([cam.fx * u + cam.cx, cam.fy * v + cam.cy])
     z = p[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x = np.where(z > 1e-9, p[..., 0] / z, np.nan)

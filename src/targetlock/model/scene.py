@@ -14,20 +14,24 @@ is centred at t = 0 unless the path says otherwise (the step).
   (report §5.2: -180 px, a quarter of the image width).
 * ``static``  — the anchor itself.
 * ``waypoints`` — timed waypoints from a CSV file with header ``t,x,y,z`` (s, m, start camera
-  frame, offsets from the anchor), linearly interpolated and held after the last one.
+  frame, offsets from the anchor), linearly interpolated and held after the last one. UTF-8 with or
+  without a BOM (Excel's "CSV UTF-8"); the file is read and checked when the config is validated,
+  and run folders keep a copy of it.
 
 The target is a plane facing the start camera; its pose's origin is the selected target point.
 """
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..config import ConfigError, param
+from ..config import ConfigError, param, read_text_file
+from ..errors import InputFileError
 from .camera import CameraParams, unproject
 
 __all__ = ["SceneParams", "Scene", "PATHS"]
@@ -39,7 +43,7 @@ PATHS = ("linear", "ellipse", "step", "static", "waypoints")
 class SceneParams:
     """Where the target is and how it moves."""
     path: str = param("linear", choices=PATHS, doc="target path")
-    waypoints_file: str = param("", doc="CSV file (t,x,y,z) for path = 'waypoints'")
+    waypoints_file: str = param("", file=True, doc="CSV file (t,x,y,z) for path = 'waypoints'")
     distance: float = param(0.12, unit="m", lo=0.005, hi=2.0, doc="target distance in front of the camera at the start (report: 12 cm)")
     start_tip_deg: tuple[float, float] = param((-10.0, 0.0), unit="deg", lo=-150.0, hi=150.0,
                                                doc="tip bending (x, y) at the start, where the target is selected")
@@ -58,8 +62,8 @@ class SceneParams:
     def check(self, prefix: str = "") -> None:
         if self.path == "waypoints" and not self.waypoints_file:
             raise ConfigError(f"{prefix}waypoints_file must name a CSV file when {prefix}path = 'waypoints'")
-        if self.path == "waypoints" and not Path(self.waypoints_file).is_file():
-            raise ConfigError(f"{prefix}waypoints_file = {self.waypoints_file!r}: no such file")
+        if self.path == "waypoints":
+            _load_waypoints(self.waypoints_file, f"{prefix}waypoints_file")
         period = 1.0 / self.linear_frequency
         if self.path == "linear" and 2 * self.stop_duration >= period:
             raise ConfigError(f"{prefix}stop_duration = {self.stop_duration} s leaves no time to move in a "
@@ -71,19 +75,36 @@ def _smooth(u: float) -> float:
     return 0.5 - 0.5 * math.cos(math.pi * min(max(u, 0.0), 1.0))
 
 
-def _load_waypoints(path: str) -> tuple[np.ndarray, np.ndarray]:
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"scene.waypoints_file = {path!r}: no such file")
-    with p.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
+def _load_waypoints(path: str, name: str = "scene.waypoints_file") -> tuple[np.ndarray, np.ndarray]:
+    """Times (s) and offsets (m) of a waypoint CSV; ConfigError naming the setting, file and row if bad."""
+    if not Path(path).is_file() and not Path(path).is_dir():
+        raise ConfigError(f"{name} = {path!r}: no such file")
     try:
-        t = np.array([float(r["t"]) for r in rows])
-        xyz = np.array([[float(r["x"]), float(r["y"]), float(r["z"])] for r in rows])
-    except (KeyError, ValueError, TypeError) as exc:
-        raise ConfigError(f"scene.waypoints_file = {path!r}: needs numeric columns t,x,y,z ({exc})") from None
-    if t.size == 0 or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(xyz)):
-        raise ConfigError(f"scene.waypoints_file = {path!r}: needs at least one row, strictly increasing t, finite values")
+        text = read_text_file(path, f"{name} =")     # utf-8-sig: Excel's BOM is accepted
+    except InputFileError as exc:   # said as a config problem, with the setting's name
+        raise ConfigError(str(exc)) from None
+    header, *rows = [r for r in csv.reader(io.StringIO(text)) if r] or [[]]
+    header = [h.strip() for h in header]
+    if not {"t", "x", "y", "z"} <= set(header):
+        raise ConfigError(f"{name} = {path!r}: header must name columns t,x,y,z, found {','.join(header)!r}")
+    cols = [header.index(c) for c in "txyz"]
+    short = [k for k, r in enumerate(rows) if len(r) <= max(cols)]
+    if short:
+        raise ConfigError(f"{name} = {path!r}: row {short[0] + 2} has {len(rows[short[0]])} values, "
+                          f"{len(header)} columns expected")
+    try:
+        values = np.array([[float(r[i]) for i in cols] for r in rows], dtype=float).reshape(-1, 4)
+    except ValueError as exc:
+        raise ConfigError(f"{name} = {path!r}: needs numeric columns t,x,y,z ({exc})") from None
+    t, xyz = values[:, 0], values[:, 1:]
+    if t.size == 0:
+        raise ConfigError(f"{name} = {path!r}: has no waypoint rows")
+    bad = np.flatnonzero(~np.isfinite(t) | ~np.all(np.isfinite(xyz), axis=1))
+    if bad.size:
+        raise ConfigError(f"{name} = {path!r}: row {bad[0] + 2} is not finite (NaN or inf); all values must be numbers")
+    if np.any(np.diff(t) <= 0):
+        row = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 3
+        raise ConfigError(f"{name} = {path!r}: t must increase strictly (row {row})")
     return t, xyz
 
 
@@ -137,9 +158,10 @@ class Scene:
             return (a * (math.cos(alpha) - 1.0), b * math.sin(alpha), 0.0)
         if p.path == "step":
             return (float(self._step[0]), float(self._step[1]), float(self._step[2]))
-        if p.path == "waypoints":
+        if p.path == "waypoints" and self._waypoints is not None:
             wt, wxyz = self._waypoints
-            return tuple(float(np.interp(t, wt, wxyz[:, k])) for k in range(3))
+            return (float(np.interp(t, wt, wxyz[:, 0])), float(np.interp(t, wt, wxyz[:, 1])),
+                    float(np.interp(t, wt, wxyz[:, 2])))
         return (0.0, 0.0, 0.0)
 
     def target_position(self, t: float | np.ndarray) -> np.ndarray:

@@ -10,14 +10,13 @@ from dataclasses import dataclass, field
 from importlib import resources
 
 from ..config import ConfigError, from_dict, param
+from ..presets import PRESETS
 from .camera import CameraParams
 from .drives import DriveParams
 from .endoscope import EndoscopeParams
 from .scene import SceneParams
 
 __all__ = ["TwinConfig", "PRESETS", "preset_overrides", "merge", "twin_config"]
-
-PRESETS = ("calibrated", "uncalibrated", "looped-shaft")
 
 
 @dataclass(frozen=True)
