@@ -112,3 +112,17 @@ def test_compare_command_table(tmp_path, capsys):
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [(r["controller"], r["latency_s"]) for r in s["rows"]] == [("pi", 0.4), ("ik", 0.4), ("pi", 0.0), ("ik", 0.0)]
     assert (tmp_path / "c" / "compare.png").exists()
+
+
+def test_the_slew_limit_is_a_property_of_time_not_of_the_loop_rate():
+    """Same scenario at 50, 200 and 1000 Hz: the same tracking within a few percent."""
+    import dataclasses as _dc
+
+    from targetlock.controllers import ControllerConfig as _CC
+    from targetlock.experiments.target_lock import RunConfig as _RC, run_target_lock as _run
+    from targetlock.loop.runner import LoopConfig as _LC
+    rms = []
+    for rate in (50.0, 200.0, 1000.0):
+        cfg = _RC(controller=_CC(kind="pi"), loop=_LC(rate=rate, seconds=8.0))
+        rms.append(_run(cfg)["rms_px"])
+    assert max(rms) / min(rms) < 1.03, rms

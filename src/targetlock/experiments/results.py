@@ -22,7 +22,7 @@ CONTROLLER_SETTINGS = {
     "pi-hc": {"i_gain": 300.0, "hc_width": 0.2},
     "pi-hc2": {"i_gain": 300.0},
     "ik": {},
-    "pi-smith": {"i_gain": 800.0},
+    "pi-smith": {},
 }
 
 SCENARIOS = {
