@@ -31,7 +31,7 @@ from .knowledge import Knowledge
 
 __all__ = ["ControllerConfig", "Controller", "CONTROLLERS"]
 
-CONTROLLERS = ("pi", "pi-hc", "pi-hc2", "ik", "pi-smith")
+CONTROLLERS = ("pi", "pi-hc", "pi-hc2", "ik", "pi-smith", "adaptive")
 
 # The integral gain each controller uses when ``i_gain`` is left at its default (tick/(px·s)): the
 # report's I = 300, and I = 800 for the predictive controller, whose prediction removes the latency
@@ -44,7 +44,7 @@ REPORT_I_GAIN = 300.0
 class ControllerConfig:
     """Settings of all controllers (each reads the ones it needs)."""
     kind: str = param("pi-hc", choices=CONTROLLERS, doc="controller: PI, PI + hysteresis compensation (model 1 / 2), "
-                                                        "inverse kinematics, PI with latency prediction")
+                                                        "inverse kinematics, PI with latency prediction, self-calibrating (online estimation)")
     i_gain: float = param(-1.0, unit="tick/(px·s)", lo=-1.0, hi=1e5,
                           doc="integral gain I of Eq. 4.2; -1: the controller's default (300 as in the report, pi-smith 800)")
     p_gain: float = param(0.0, unit="tick/px", lo=0.0, hi=1e5, doc="proportional gain P of Eq. 4.2 (report: 0)")
@@ -60,6 +60,13 @@ class ControllerConfig:
                                doc="delay of the motor position to match the video (-1: the camera latency)")
     target_prediction: float = param(1.0, lo=0.0, hi=2.0,
                                      doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
+    adaptive_gain: float = param(3.0, unit="1/s", lo=0.05, hi=50.0,
+                                 doc="adaptive: closed-loop bandwidth while its model predicts the image well")
+    adaptive_safe_gain: float = param(0.5, lo=0.01, hi=1.5,
+                                      doc="adaptive: fallback loop gain × (video age + frame interval): PI tuned to the delay")
+    adaptive_prior_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
+                                        doc="adaptive: distance of its prior Jacobian (short = cautious until estimated)")
+    adaptive_backlash: float = param(1.0, lo=0.0, hi=2.0, doc="adaptive: fraction of the estimated backlash compensated")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")

@@ -78,6 +78,15 @@ class History:
                 return m0 + f * (m1 - m0)
         return buf[0][1].copy()
 
+    def at_many(self, times: np.ndarray) -> np.ndarray:
+        """Values (n, 2) at many times (s), interpolated and clamped like :meth:`at`."""
+        if not self._buf:
+            raise LookupError("no history yet")
+        ts = np.fromiter((b[0] for b in self._buf), float, len(self._buf))
+        vs = np.array([b[1] for b in self._buf])
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        return np.column_stack([np.interp(times, ts, vs[:, k]) for k in range(vs.shape[1])])
+
 
 class PIController(Controller):
     """PI (``pi``), PI + compensation model 1 (``pi-hc``) or model 2 (``pi-hc2``), and ``pi-smith``."""
