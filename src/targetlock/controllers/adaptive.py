@@ -54,8 +54,11 @@ class AdaptiveController(Controller):
         # scheduled gain is never higher than a correct one at any distance the lock is made for.
         far = prior_jacobian(motor, camera=k.camera, depth=max(0.15, k.depth), tip_gain=cfg.tip_gain,
                              tip_length=k.endoscope.tip_length, n_elements=k.endoscope.n_elements)
+        near = prior_jacobian(motor, camera=k.camera, depth=min(0.01, k.depth), tip_gain=cfg.tip_gain,
+                              tip_length=k.endoscope.tip_length, n_elements=k.endoscope.n_elements)
         floor = 0.75 * float(np.min(np.linalg.svd(far, compute_uv=False)))
-        self.jacobian = JacobianEstimator(prior, sv_min=floor)
+        ceiling = 1.5 * float(np.max(np.linalg.svd(near, compute_uv=False)))
+        self.jacobian = JacobianEstimator(prior, sv_min=floor, sv_max=ceiling)
         self.delay = DelayEstimator(initial=0.0)
         self.backlash = BacklashEstimator()
         self.integrator = motor.copy()
@@ -73,10 +76,11 @@ class AdaptiveController(Controller):
         self.frame_interval = 1.0 / max(k.camera.fps, 1.0)
 
     def _width(self, motor: np.ndarray) -> float:
-        """Backlash width (handle rad) assumed now: the estimate once a few reversals were seen."""
+        """Backlash width (handle rad) assumed now: the estimate once a few reversals were seen,
+        never more than ``adaptive_max_backlash`` (an overestimate makes the compensation cycle)."""
         if self.backlash.reversals >= 3:
-            return self.backlash.width(float(np.abs(motor).sum()))
-        return self.nominal_width
+            return min(self.backlash.width(float(np.abs(motor).sum())), self.cfg.adaptive_max_backlash)
+        return min(self.nominal_width, self.cfg.adaptive_max_backlash)
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray | None:
         self.history.push(t, motor)

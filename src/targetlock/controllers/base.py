@@ -66,7 +66,9 @@ class ControllerConfig:
                                       doc="adaptive: fallback loop gain × (video age + frame interval): PI tuned to the delay")
     adaptive_prior_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
                                         doc="adaptive: distance of its prior Jacobian (short = cautious until estimated)")
-    adaptive_backlash: float = param(1.0, lo=0.0, hi=2.0, doc="adaptive: fraction of the estimated backlash compensated")
+    adaptive_backlash: float = param(0.0, lo=0.0, hi=2.0, doc="adaptive: fraction of the estimated backlash compensated")
+    adaptive_max_backlash: float = param(0.1, unit="rad", lo=0.0, hi=1.0,
+                                         doc="adaptive: largest backlash width (handle) it models and compensates")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")
