@@ -99,11 +99,12 @@ class AdaptiveController(Controller):
             tp, xp = self.prev
             dm = e_c - self.effective_history.at(tp - self.delay.delay)
             predicted = est.predict(dm)
+            rejected = est.rejected
             if est.update(dm, x - xp, c - tp):
                 # Supervisor: how well did the model predict the image motion of our own motion?
                 r = est.last_residual / (np.linalg.norm(predicted) + 3.0)
                 self.mismatch = 0.8 * self.mismatch + 0.2 * min(r, 3.0)
-            elif est.last_residual > 0 and np.linalg.norm(dm) >= est.min_motion:
+            elif est.rejected > rejected:
                 self.mismatch = 0.8 * self.mismatch + 0.2 * 3.0    # rejected as an outlier: distrust a while
         self.prev = (c, x)
         self.delay.add(c, x, self.effective_history.at_many, est.j)

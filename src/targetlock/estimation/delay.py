@@ -19,7 +19,7 @@ __all__ = ["DelayEstimator"]
 
 class DelayEstimator:
     def __init__(self, *, initial: float = 0.0, lo: float = -0.2, hi: float = 0.8, step: float = 0.01,
-                 window: int = 80, every: int = 10, min_correlation: float = 0.6) -> None:
+                 window: int = 80, every: int = 10, min_correlation: float = 0.8) -> None:
         self.delay = float(np.clip(initial, lo, hi))
         self.lo, self.hi = lo, hi
         self.candidates = np.arange(lo, hi + 1e-9, step)

@@ -12,7 +12,8 @@ not (a stuck tip: friction, backlash) update only v — they say nothing about J
 a small J would make the loop gain too high. Safeguards: Huber-clipped residuals at a multiple of their running scale and
 outright rejection of very large ones (tracker outliers, target jumps); the covariance kept within
 bounds (no wind-up without excitation); the singular values of J kept within [sv_min, sv_max] and its
-orientation (sign of the determinant) that of the prior, and each update's relative change of J
+orientation (sign of the determinant and of the diagonal) that of the prior, the cross coupling at
+most ``max_coupling`` of the direct effect, and each update's relative change of J
 capped — a physically impossible estimate is never
 handed to a controller.
 """
@@ -50,8 +51,10 @@ class JacobianEstimator:
 
     def __init__(self, prior: np.ndarray, *, forgetting: float = 0.97, prior_weight: float = 1e-4,
                  sv_min: float = 50.0, sv_max: float = 8000.0, min_motion: float = 1e-3, huber: float = 3.0,
-                 max_change: float = 0.1, min_image_motion: float = 3.0) -> None:
+                 max_change: float = 0.1, min_image_motion: float = 3.0, max_coupling: float = 0.5) -> None:
         self.j = np.array(prior, dtype=float)
+        self.prior = self.j.copy()
+        self.max_coupling = max_coupling
         det = np.linalg.det(self.j)
         self.orientation = math.copysign(1.0, det) if det != 0 else 1.0
         self.velocity = np.zeros(2)                        # px/s
@@ -117,6 +120,14 @@ class JacobianEstimator:
         size = float(np.linalg.norm(self.j))
         if np.linalg.norm(step) > self.max_change * size:
             j = self.j + step * (self.max_change * size / np.linalg.norm(step))
+        # Structure: each handle axis moves the image mostly along the axis the prior says (the
+        # bending planes are the image axes, up to a moderate coupling when both axes are bent).
+        diag_p = np.diag(self.prior)
+        for a in range(2):
+            if np.sign(j[a, a]) != np.sign(diag_p[a]):
+                return self.j
+            b = 1 - a
+            j[b, a] = np.clip(j[b, a], -self.max_coupling * abs(j[a, a]), self.max_coupling * abs(j[a, a]))
         u, s, vt = np.linalg.svd(j)
         s = np.clip(s, self.sv_min, self.sv_max)
         out = (u * s) @ vt

@@ -40,11 +40,12 @@ from ..model.twin import PRESETS, twin_config
 from ..rig.simulated import ObservationNoise
 from .target_lock import RunConfig, run_target_lock
 
-__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS"]
+__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
+           "format_table", "bench_robustness"]
 
 MOTIONS = ("smooth", "stops", "move", "drift", "rotation", "step")
 RESTING = ("move", "step")
-BENCH_CONTROLLERS = ("pi", "pi-hc", "pi-hc2", "ik", "pi-smith")
+BENCH_CONTROLLERS = ("pi", "pi-hc", "pi-hc2", "ik", "pi-smith", "pi-smith+oracle", "adaptive", "adaptive+oracle")
 SAMPLE_DT = 0.05       # s, waypoint spacing of the generated paths
 
 
@@ -239,3 +240,19 @@ def format_table(summary: dict) -> list[str]:
                      f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
                      f"{s['rest_rms_worst']:>8.1f}")
     return lines
+
+
+def bench_robustness(n_cases: int = 60, seed: int = 0) -> dict:
+    """``targetlock bench robustness``: print the table; returns the summary (the JSON line)."""
+    from ..config import ConfigError
+    if not 1 <= n_cases <= 10000:
+        raise ConfigError(f"--cases = {n_cases}; allowed: [1, 10000]")
+    if seed < 0:
+        raise ConfigError(f"--seed = {seed}; allowed: [0, 2^63)")
+    r = run_robustness(n_cases, seed)
+    print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
+          f"unless '+oracle'; rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
+    print("\n".join(format_table(r["summary"])))
+    print(f"({r['wall_seconds']:.0f} s on one core)")
+    return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
+            "controllers": r["summary"]}
