@@ -81,6 +81,9 @@ class JacobianEstimator:
         dx = np.asarray(dx, dtype=float)
         if not (np.all(np.isfinite(dm)) and np.all(np.isfinite(dx)) and math.isfinite(dt)) or dt <= 0 or dt > 0.5:
             return False
+        if np.max(np.abs(dx)) > 1e5 or np.max(np.abs(dm)) > 10.0:
+            self.rejected += 1                   # implausible: no image or handle moves that far between frames
+            return False
         r = dx - self.j @ dm - self.velocity * dt
         rn = float(np.linalg.norm(r))
         self.last_residual = rn
