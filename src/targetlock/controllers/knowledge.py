@@ -40,6 +40,7 @@ class Knowledge:
     camera: CameraParams          # intrinsics assumed; its ``latency`` is the assumed latency
     depth: float                  # m
     source: str                   # "nominal" or "oracle"
+    preset: str                   # the endoscope preset these parameters came from
 
     @property
     def latency(self) -> float:
@@ -50,10 +51,8 @@ class Knowledge:
         """One line saying which knowledge this is (for summaries and tables)."""
         if self.source == "oracle":
             return "oracle (the plant's true parameters)"
-        return (f"nominal (preset {self._preset}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, "
+        return (f"nominal (preset {self.preset}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, "
                 f"f {self.camera.fx:g} px)")
-
-    _preset: str = "calibrated"
 
 
 def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
@@ -62,12 +61,12 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     unless ``k.source == "oracle"``."""
     if k.source == "oracle":
         return Knowledge(endoscope=plant.endoscope, camera=plant.camera, depth=plant.scene.distance, source="oracle",
-                         _preset=plant.preset)
+                         preset=plant.preset)
     endoscope = twin_config(k.preset).endoscope
     camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
                                  cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps,
                                  fx=k.fx, fy=k.fy, latency=k.latency)
-    return Knowledge(endoscope=endoscope, camera=camera, depth=k.depth, source="nominal", _preset=k.preset)
+    return Knowledge(endoscope=endoscope, camera=camera, depth=k.depth, source="nominal", preset=k.preset)
 
 
 def nominal_knowledge(plant: TwinConfig | None = None) -> Knowledge:

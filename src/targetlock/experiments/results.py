@@ -184,5 +184,15 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   online copy of the endoscope model, driven by the measured motors, so hysteresis and the compensation's
   own steps are not mistaken for tip motion) and the target's motion (its world velocity over the last
   frames). The latency then no longer limits the gain: I = 800 is stable and the errors fall by a factor
-  of 2–3 against PI + HC.
+  of 2–3 against PI + HC. But it needs the plant: on an unknown scope or at another distance (the
+  robustness section) it is the least robust controller, as the report's random study found.
+* **Knowledge.** Controllers get the nominal assumptions (`[knowledge]` in the config: preset, latency,
+  depth, focal length), never the simulated plant's truth; `knowledge.source = "oracle"` hands the truth
+  over and every result says which it was. In the report's scenarios the nominal values are the plant's.
+* **`adaptive`** (ours) assumes almost nothing: it estimates the image Jacobian (distance, focal length,
+  handle gain), the delay and the backlash while it runs, schedules its gain by the Jacobian, predicts
+  over the latency while a supervisor finds the model consistent and falls back to a delay-tuned PI
+  gain otherwise. It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, but
+  it starts cautiously (its prior is a short distance), so on the report's fast 12 cm paths it is
+  slower than PI.
 """

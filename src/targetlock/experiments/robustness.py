@@ -24,7 +24,6 @@ shows there). Ratios are to PI (I = 300) on the same case.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import math
 import tempfile
 import time
