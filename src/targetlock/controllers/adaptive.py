@@ -125,4 +125,9 @@ class AdaptiveController(Controller):
         return self.integrator + self.compensation
 
     def signals(self) -> dict[str, float]:
-        return {"trust": self.trust, "jacobian_px_per_rad": self.jacobian.gain_scale if self.engaged else math.nan}
+        """Per axis: the estimated image Jacobian's direct terms (px per handle rad), then the trust."""
+        if not self.engaged:
+            return {"jacobian_x_px_per_rad": math.nan, "jacobian_y_px_per_rad": math.nan, "trust": math.nan}
+        j = self.jacobian.j
+        return {"jacobian_x_px_per_rad": abs(float(j[0, 0])), "jacobian_y_px_per_rad": abs(float(j[1, 1])),
+                "trust": self.trust}

@@ -202,10 +202,10 @@ def plot_run(data: np.ndarray, cfg: RunConfig, path) -> None:
     ax.grid(alpha=0.3)
     if has_sig:
         ax = axes[2]
-        label = "compensation" if cfg.controller.kind.startswith("pi") else "IK goal"
+        label = {"ik": "IK goal", "adaptive": "estimated |J| (px/rad)"}.get(cfg.controller.kind, "compensation")
         ax.plot(t, data[:, 14], lw=0.9, label=f"{label} x")
         ax.plot(t, data[:, 15], lw=0.9, label=f"{label} y")
-        ax.set_ylabel("deg")
+        ax.set_ylabel("px/rad" if cfg.controller.kind == "adaptive" else "deg")
         ax.legend(loc="upper right", fontsize=8)
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time (s)")
