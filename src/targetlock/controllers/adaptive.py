@@ -8,8 +8,11 @@ means a small, safe gain). While the lock runs it estimates (package :mod:`targe
   this carries the working distance, the focal length and the handle gain, so the loop gain is
   scheduled by it (an integral gain of ``K·J⁻¹``: the same closed-loop bandwidth at 1 cm and 15 cm);
 * the delay between the stamped capture time and the image motion (wrong or unknown latency);
-* the backlash width at reversals (bend dependent), compensated by a backlash inverse like the
-  report's (half the width, applied in the direction of motion, faded in with the estimate).
+* the backlash width at reversals (bend dependent). It shapes the motor signal the Jacobian is fitted
+  to (a play operator: motor motion inside the backlash does not move the tip). A backlash inverse
+  (``adaptive_backlash`` × half the width, in the direction of motion) is available but off by
+  default: on the robustness benchmark an overestimated width made it cycle at rest, which cost more
+  than the compensation gained.
 
 On each frame the offset is predicted to now with the estimated model (a Smith predictor in image
 space: x + J·(m_now − m_capture)), and integrated with gain ``K``. A supervisor compares the
