@@ -214,11 +214,13 @@ def _identify(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------- bench
 def _bench_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=("model", "loop", "vision"), help="what to measure")
+    p.add_argument("what", choices=("model", "loop", "vision", "robustness"), help="what to measure")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object on the last line")
+    p.add_argument("--cases", type=int, default=60, help="robustness: number of random cases (default 60)")
+    p.add_argument("--seed", type=int, default=0, help="robustness: seed of the random set (default 0)")
 
 
-@command("bench", "benchmarks: model, loop, vision")(_bench_options)
+@command("bench", "benchmarks: model, loop, vision, robustness")(_bench_options)
 def _bench(args: argparse.Namespace) -> int:
     from .experiments.common import print_json_last
     if args.what == "model":
@@ -230,6 +232,9 @@ def _bench(args: argparse.Namespace) -> int:
         from .bench import bench_loop
         res = bench_loop()
         print(f"loop: real-time factor {res['realtime_factor']:.0f}; IK step {res['ik_step_ms']:.4f} ms")
+    elif args.what == "robustness":
+        from .experiments.robustness import bench_robustness
+        res = bench_robustness(args.cases, args.seed)
     else:
         from .bench import bench_vision
         res = bench_vision()

@@ -81,6 +81,9 @@ def _progress(total: int, unit: str):
 def _print_summary(s: dict) -> None:
     print(f"target lock: {s['controller']} on the {s['path']} path, latency {s['latency_s']:g} s, {s['fps']:g} fps, "
           f"preset {s['preset']!r}")
+    print(f"  controller knowledge: {s['knowledge']}")
+    if s.get("target_losses"):
+        print(f"  target lost {s['target_losses']} time(s): the lock held the motors until it was seen again")
     print(f"  tracking error after warm-up: rms {s['rms_px']:.1f} px, peak {s['peak_px']:.1f} px, "
           f"p95 {s['p95_px']:.1f} px, mean {s['mean_px']:.1f} px")
     if s.get("tip_range_deg"):

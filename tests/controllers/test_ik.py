@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from targetlock.controllers import ControllerConfig, IKController
+from targetlock.controllers import ControllerConfig, IKController, nominal_knowledge
 from targetlock.controllers.ik import aim_angles
 from targetlock.model.camera import CameraParams, project, world_to_camera
 from targetlock.model.kinematics import tip_pose
@@ -22,7 +22,7 @@ def test_aim_angles_put_the_target_on_the_optical_axis(target):
 
 def make(**kw):
     cfg = ControllerConfig(kind="ik", tip_gain=1.0, **kw)
-    return IKController(cfg, camera=CAM, tip_length=L, n_elements=N, latency=0.4, rad_per_tick=1.6e-5,
+    return IKController(cfg, knowledge=nominal_knowledge(), rad_per_tick=1.6e-5,
                         lower=np.full(2, -2.0), upper=np.full(2, 2.0), control_dt=0.02)
 
 

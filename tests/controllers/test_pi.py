@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from targetlock.config import ConfigError, validate
-from targetlock.controllers import ControllerConfig, PIController
-from targetlock.model.camera import CameraParams
+from targetlock.controllers import ControllerConfig, PIController, nominal_knowledge
 from targetlock.rig.base import Observation
 
 RPT = 1.6e-5
@@ -14,7 +13,7 @@ LO, HI = np.array([-2.0, -2.0]), np.array([2.0, 2.0])
 
 def make(kind="pi", **kw):
     cfg = ControllerConfig(kind=kind, **kw)
-    return PIController(cfg, rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02, latency=0.4, camera=CameraParams())
+    return PIController(cfg, rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02, knowledge=nominal_knowledge())
 
 
 def obs(t, x, y=0.0, valid=True):
@@ -114,11 +113,6 @@ def test_model_2_width_grows_with_both_bending_angles():
     assert w1[0] > w0[0]
 
 
-def test_predictor_needs_the_camera():
-    with pytest.raises(ValueError, match="camera"):
-        PIController(ControllerConfig(kind="pi-smith"), rad_per_tick=RPT, lower=LO, upper=HI, control_dt=0.02)
-
-
 def test_prediction_subtracts_the_motion_since_capture():
     plain, pred = make("pi-hc2"), make("pi-smith")
     for c in (plain, pred):
@@ -129,3 +123,50 @@ def test_prediction_subtracts_the_motion_since_capture():
     a = plain.step(obs(0.0, 50.0), m, 0.4)
     b = pred.step(obs(0.0, 50.0), m, 0.4)
     assert b[0] < a[0]   # the predictor knows the target already moved towards the centre
+
+
+def test_model_2_compensation_is_continuous_through_the_centre():
+    c = make("pi-hc2", hc2_slope=0.1, hc2_offset_deg=9.0)
+    c.reset(np.array([0.3, 0.0]), 0.0)
+    comps = []
+    for k, m in enumerate(np.linspace(0.3, -0.3, 121)):     # moving negative all the way, 0.005 rad a frame
+        c.step(obs(0.05 * k, -30.0), np.array([m, 0.0]), 0.02 * (k + 1))
+        comps.append(c.compensation[0])
+    jumps = np.abs(np.diff(comps))
+    assert jumps.max() < math.radians(0.5)                   # no ±9° flip at the zero crossing
+    assert comps[0] == pytest.approx(-c._width(np.array([0.3, 0.0]))[0])  # full width towards the centre
+    assert comps[-1] == 0.0                                  # outwards on the other side: off
+
+
+def test_the_default_integral_gain_is_the_controllers_own():
+    assert ControllerConfig(kind="pi").integral_gain == 300.0
+    assert ControllerConfig(kind="pi-smith").integral_gain == 800.0
+    assert ControllerConfig(kind="pi-smith", i_gain=250.0).integral_gain == 250.0
+    with pytest.raises(ConfigError, match="i_gain"):
+        validate(ControllerConfig(kind="pi", i_gain=-0.5))
+
+
+def test_a_lost_target_is_held_and_reported():
+    c = make(i_gain=300.0, max_rate=100.0)
+    c.reset(np.zeros(2), 0.0)
+    held = c.step(obs(0.0, 80.0, 20.0), np.zeros(2), 0.02)
+    for k in range(100):                                     # two seconds of invalid frames
+        sp = c.step(obs(0.05 * (k + 1), math.nan, math.nan, valid=False), held, 0.04 + 0.02 * k)
+        np.testing.assert_array_equal(sp, held)
+    assert c.losses == 1
+    assert c.lost_for(2.02) == pytest.approx(2.0)
+    c.step(obs(2.1, 0.0), held, 2.04)                        # seen again: tracked, the loss stays counted
+    assert c.lost_for(2.04) == 0.0 and c.losses == 1
+
+
+def test_the_setpoint_slews_between_frames_at_the_rate_limit():
+    """A frame's command is reached at max_rate per second whatever the tick rate (not per frame)."""
+    for dt in (0.02, 0.001):
+        c = PIController(ControllerConfig(kind="pi", i_gain=1e5, max_rate=1.0), rad_per_tick=RPT, lower=LO,
+                         upper=HI, control_dt=dt, knowledge=nominal_knowledge())
+        c.reset(np.zeros(2), 0.0)
+        c.step(obs(0.0, 1000.0), np.zeros(2), dt)            # command far away
+        n = int(round(0.2 / dt))
+        for k in range(n - 1):
+            sp = c.step(None, np.zeros(2), dt * (k + 2))     # no new frames
+        assert sp[0] == pytest.approx(0.2, rel=1e-6)          # 0.2 s at 1 rad/s

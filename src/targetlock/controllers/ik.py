@@ -17,10 +17,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..model.camera import CameraParams, unproject
+from ..model.camera import unproject
 from ..model.kinematics import tip_pose
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
+from .knowledge import Knowledge
 from .pi import History
 
 __all__ = ["IKController", "aim_angles"]
@@ -69,12 +70,13 @@ def aim_angles(target: np.ndarray, phi_start: np.ndarray, length: float, n: int,
 class IKController(Controller):
     """Target pixel + depth -> 3D target -> bending angles that centre it -> damped handle setpoint."""
 
-    def __init__(self, cfg: ControllerConfig, *, camera: CameraParams, tip_length: float, n_elements: int,
-                 latency: float, **kw) -> None:
-        super().__init__(cfg, **kw)
-        self.camera = camera
-        self.tip_length = float(tip_length)
-        self.n_elements = int(n_elements)
+    def __init__(self, cfg: ControllerConfig, *, knowledge: Knowledge, **kw) -> None:
+        super().__init__(cfg, knowledge=knowledge, **kw)
+        self.camera = knowledge.camera
+        self.depth = knowledge.depth
+        self.tip_length = float(knowledge.endoscope.tip_length)
+        self.n_elements = int(knowledge.endoscope.n_elements)
+        latency = knowledge.latency
         self.delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
         self.history = History(self.delay + 1.0, self.control_dt)
         self.goal = np.zeros(2)
@@ -86,11 +88,11 @@ class IKController(Controller):
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
         self.history.push(t, motor)
         if obs is None:
-            return self.setpoint
+            return None
         cfg, cam = self.cfg, self.camera
         motor_then = self.history.at(t - self.delay) if cfg.motor_delay >= 0 else self.history.at(obs.capture_time)
         phi_then = cfg.tip_gain * motor_then
-        p_cam = unproject(np.asarray(obs.offset) + [cam.cx, cam.cy], cfg.ik_depth, cam)
+        p_cam = unproject(np.asarray(obs.offset) + [cam.cx, cam.cy], self.depth, cam)
         pose = tip_pose(phi_then[0], phi_then[1], self.tip_length, self.n_elements)
         p_base = pose[:3, :3] @ p_cam + pose[:3, 3]
         lim = float(np.max(np.abs(np.concatenate([self.lower, self.upper])))) * cfg.tip_gain

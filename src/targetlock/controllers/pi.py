@@ -19,7 +19,8 @@ with d_a the latched direction of motion (sign of x_a, latched only when |x_a| >
 outwards (d = sign M) gives H = 0; moving towards the centre gives H = -width·sign(M), a step
 towards the centre. When the tip crosses the centre while moving the same way, sign(M) flips and
 H returns to 0 continuously because width -> 0 at M = 0 for model 1 — this is the report's
-"redesign around the centre" (§4.2.2, last paragraph) done.
+"redesign around the centre" (§4.2.2, last paragraph) done. Model 2 keeps a width at zero bend, so
+there sign(M) is replaced by M/band clipped to ±1 (band = that width): continuous through the centre.
 
 ``pi-smith`` adds latency prediction (a Smith predictor): the offset is corrected by the image
 motion the tip has made since the frame was captured — the target, placed at the assumed depth
@@ -36,12 +37,13 @@ from collections import deque
 
 import numpy as np
 
-from ..model.camera import CameraParams, project, unproject, world_to_camera
+from ..model.camera import project, unproject, world_to_camera
 from ..model.drives import DriveParams
 from ..model.kinematics import tip_pose
-from ..model.endoscope import EndoscopeParams, advance, initial_state, pack_params
+from ..model.endoscope import advance, initial_state, pack_params
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
+from .knowledge import Knowledge
 
 __all__ = ["PIController", "History"]
 
@@ -76,17 +78,25 @@ class History:
                 return m0 + f * (m1 - m0)
         return buf[0][1].copy()
 
+    def at_many(self, times: np.ndarray) -> np.ndarray:
+        """Values (n, 2) at many times (s), interpolated and clamped like :meth:`at`."""
+        if not self._buf:
+            raise LookupError("no history yet")
+        ts = np.fromiter((b[0] for b in self._buf), float, len(self._buf))
+        vs = np.array([b[1] for b in self._buf])
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        return np.column_stack([np.interp(times, ts, vs[:, k]) for k in range(vs.shape[1])])
+
 
 class PIController(Controller):
     """PI (``pi``), PI + compensation model 1 (``pi-hc``) or model 2 (``pi-hc2``), and ``pi-smith``."""
 
-    def __init__(self, cfg: ControllerConfig, *, latency: float = 0.4, endoscope: EndoscopeParams | None = None,
-                 model_dt: float = 0.001, camera: CameraParams | None = None, **kw) -> None:
-        super().__init__(cfg, **kw)
-        if cfg.kind == "pi-smith" and camera is None:
-            raise ValueError("the pi-smith predictor needs the camera (it re-projects the target)")
-        self.camera = camera
-        e = endoscope or EndoscopeParams()
+    def __init__(self, cfg: ControllerConfig, *, knowledge: Knowledge, model_dt: float = 0.001, **kw) -> None:
+        super().__init__(cfg, knowledge=knowledge, **kw)
+        self.camera = knowledge.camera
+        self.depth = knowledge.depth
+        latency = knowledge.latency
+        e = knowledge.endoscope
         self.geometry = (e.tip_length, e.n_elements)
         # Online model for the predictor: the handle follows the measured motor exactly.
         self.model_params = pack_params(e,
@@ -94,7 +104,7 @@ class PIController(Controller):
         self.model_dt = model_dt
         self.model_state = initial_state(1)
         self.kind = cfg.kind
-        self.i_gain = cfg.i_gain * self.rad_per_tick      # rad/(px·s)
+        self.i_gain = cfg.integral_gain * self.rad_per_tick      # rad/(px·s)
         self.p_gain = cfg.p_gain * self.rad_per_tick      # rad/px
         delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
         self.tip_history = History(delay + 1.0, self.control_dt)   # online model's tip angles (pi-smith)
@@ -125,7 +135,7 @@ class PIController(Controller):
         cam, g = self.camera, self.geometry
         then = tip_pose(phi_then[0], phi_then[1], g[0], g[1])
         now = tip_pose(phi_now[0], phi_now[1], g[0], g[1])
-        p_world = then[:3, :3] @ unproject(x + (cam.cx, cam.cy), self.cfg.ik_depth, cam) + then[:3, 3]
+        p_world = then[:3, :3] @ unproject(x + (cam.cx, cam.cy), self.depth, cam) + then[:3, 3]
         self.target_track.append((t_capture, p_world))
         horizon = self.cfg.target_prediction * (t_now - t_capture)
         if horizon > 0 and len(self.target_track) >= 3:
@@ -144,13 +154,23 @@ class PIController(Controller):
         bend = cfg.tip_gain * float(np.abs(motor).sum())
         return np.full(2, cfg.hc2_slope * bend + math.radians(cfg.hc2_offset_deg))
 
+    def _side(self, motor: np.ndarray) -> np.ndarray:
+        """Which side of the centre the handle is on, -1 … 1. Model 1's width vanishes at the centre,
+        so a sign is continuous enough; model 2's width does not (hc2_offset_deg at zero bend), so the
+        side tapers linearly over ±that width: crossing the centre moving one way fades the
+        compensation out instead of flipping it by the whole width in one tick."""
+        if self.kind == "pi-hc":
+            return np.where(motor < 0, -1.0, 1.0)
+        band = max(math.radians(self.cfg.hc2_offset_deg), 1e-6)
+        return np.clip(motor / band, -1.0, 1.0)
+
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
         if self.kind == "pi-smith":
             advance(self.model_state, self.model_params, motor[None, :], self.model_dt,
                     max(1, int(round(self.control_dt / self.model_dt))))
             self.tip_history.push(t, self.model_state[0, 2:4])
         if obs is None:
-            return self.setpoint  # hold: no integration without a valid observation
+            return None  # hold: no integration without a valid observation
         x = np.asarray(obs.offset, dtype=float)
         if self.kind == "pi-smith":
             x = self._predict(x, self.tip_history.at(obs.capture_time), self.tip_history.at(t), obs.capture_time, t)
@@ -159,8 +179,7 @@ class PIController(Controller):
         if self.kind != "pi":
             latch = np.abs(x) > self.cfg.hc_threshold_px
             self.direction = np.where(latch, np.where(x >= 0, 1.0, -1.0), self.direction)
-            side = np.where(motor < 0, -1.0, 1.0)
-            self.compensation = self._width(motor) * (self.direction - side) / 2.0
+            self.compensation = self._width(motor) * (self.direction - self._side(motor)) / 2.0
         return self.integrator + self.p_gain * x + self.compensation
 
     def signals(self) -> dict[str, float]:

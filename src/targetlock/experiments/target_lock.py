@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import param
-from ..controllers import ControllerConfig, make_controller
+from ..controllers import ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
 from ..loop.clock import SimClock, WallClock
 from ..loop.runner import ControlLoop, LoopConfig, Tick
 from ..model.twin import TwinConfig
@@ -32,6 +32,7 @@ class RunConfig:
     """A complete, reproducible target-lock run."""
     twin: TwinConfig = field(default_factory=TwinConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    knowledge: KnowledgeConfig = field(default_factory=KnowledgeConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     tracker: ObservationNoise = field(default_factory=ObservationNoise)
     vision: bool = param(False, doc="render frames and track them instead of the ideal projection")
@@ -45,14 +46,13 @@ def build_rig(cfg: RunConfig, frame_hook=None) -> SimulatedRig:
 
 
 def build_controller(cfg: RunConfig, rig):
+    """The configured controller with the rig's drive limits and ``cfg.knowledge`` — the nominal
+    assumptions, never the simulated plant's truth unless ``knowledge.source = "oracle"``."""
     drives = rig.drives
     lo, hi = drives.limits
     rpt = drives.rad_per_tick
-    twin = cfg.twin
     return make_controller(cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt, control_dt=1.0 / cfg.loop.rate,
-                           camera=twin.camera, tip_length=twin.endoscope.tip_length, n_elements=twin.endoscope.n_elements,
-                           latency=twin.camera.latency, endoscope=twin.endoscope,
-                           model_dt=twin.model_dt)
+                           knowledge=resolve_knowledge(cfg.knowledge, cfg.twin), model_dt=cfg.twin.model_dt)
 
 
 class _Recorder:
@@ -153,7 +153,8 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
     data = np.asarray(rec.rows, dtype=float)
     summary = metrics(data, rig.frame_log, cfg.loop.metrics_after)
     summary.update({"rig": "hardware" if hardware else "twin", "controller": cfg.controller.kind, "path": cfg.twin.scene.path, "latency_s": cfg.twin.camera.latency,
-                    "fps": cfg.twin.camera.fps, "preset": cfg.twin.preset, "sim_seconds": cfg.loop.seconds,
+                    "fps": cfg.twin.camera.fps, "preset": cfg.twin.preset,
+                    "knowledge": ctrl.knowledge.label, "target_losses": ctrl.losses, "sim_seconds": cfg.loop.seconds,
                     "wall_seconds": wall, "realtime_factor": cfg.loop.seconds / wall if wall > 0 else math.inf})
     if vision is not None:
         summary["vision"] = vision.stats()
@@ -201,10 +202,10 @@ def plot_run(data: np.ndarray, cfg: RunConfig, path) -> None:
     ax.grid(alpha=0.3)
     if has_sig:
         ax = axes[2]
-        label = "compensation" if cfg.controller.kind.startswith("pi") else "IK goal"
+        label = {"ik": "IK goal", "adaptive": "estimated |J| (px/rad)"}.get(cfg.controller.kind, "compensation")
         ax.plot(t, data[:, 14], lw=0.9, label=f"{label} x")
         ax.plot(t, data[:, 15], lw=0.9, label=f"{label} y")
-        ax.set_ylabel("deg")
+        ax.set_ylabel("px/rad" if cfg.controller.kind == "adaptive" else "deg")
         ax.legend(loc="upper right", fontsize=8)
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time (s)")

@@ -1,0 +1,74 @@
+"""What a controller assumes about the plant, kept apart from what the (simulated) plant is.
+
+A real lab knows its endoscope only roughly: the nominal ``calibrated`` preset, the report's video
+latency (0.4 s) and working distance (12 cm), and the camera's nominal intrinsics. The controllers
+get exactly that (:class:`KnowledgeConfig`, ``source = "nominal"``), never silently the twin's truth.
+``source = "oracle"`` hands over the simulated plant's true parameters instead; every result made that
+way is labelled "oracle" (the run summary's ``knowledge`` field).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from ..config import param
+from ..model.camera import CameraParams
+from ..model.endoscope import EndoscopeParams
+from ..model.twin import PRESETS, TwinConfig, twin_config
+
+__all__ = ["KnowledgeConfig", "Knowledge", "resolve_knowledge", "nominal_knowledge", "KNOWLEDGE_SOURCES"]
+
+KNOWLEDGE_SOURCES = ("nominal", "oracle")
+
+
+@dataclass(frozen=True)
+class KnowledgeConfig:
+    """The controller's own assumptions about endoscope, camera, latency and target depth."""
+    source: str = param("nominal", choices=KNOWLEDGE_SOURCES,
+                        doc="'nominal': the values below; 'oracle': the simulated plant's truth (labelled oracle)")
+    preset: str = param("calibrated", choices=PRESETS, doc="endoscope preset the controller assumes")
+    latency: float = param(0.4, unit="s", lo=0.0, hi=5.0, doc="assumed video latency (report: 0.4 s)")
+    depth: float = param(0.12, unit="m", lo=0.005, hi=2.0, doc="assumed target distance (report: 12 cm)")
+    fx: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along x")
+    fy: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along y")
+
+
+@dataclass(frozen=True)
+class Knowledge:
+    """Resolved assumptions handed to a controller (SI units, pixels)."""
+    endoscope: EndoscopeParams
+    camera: CameraParams          # intrinsics assumed; its ``latency`` is the assumed latency
+    depth: float                  # m
+    source: str                   # "nominal" or "oracle"
+    preset: str                   # the endoscope preset these parameters came from
+
+    @property
+    def latency(self) -> float:
+        return self.camera.latency
+
+    @property
+    def label(self) -> str:
+        """One line saying which knowledge this is (for summaries and tables)."""
+        if self.source == "oracle":
+            return "oracle (the plant's true parameters)"
+        return (f"nominal (preset {self.preset}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, "
+                f"f {self.camera.fx:g} px)")
+
+
+def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
+    """The assumptions a controller gets. Only the image size and principal point are taken from the
+    plant's camera (they are read off the image itself); everything else is the configured nominal,
+    unless ``k.source == "oracle"``."""
+    if k.source == "oracle":
+        return Knowledge(endoscope=plant.endoscope, camera=plant.camera, depth=plant.scene.distance, source="oracle",
+                         preset=plant.preset)
+    endoscope = twin_config(k.preset).endoscope
+    camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
+                                 cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps,
+                                 fx=k.fx, fy=k.fy, latency=k.latency)
+    return Knowledge(endoscope=endoscope, camera=camera, depth=k.depth, source="nominal", preset=k.preset)
+
+
+def nominal_knowledge(plant: TwinConfig | None = None) -> Knowledge:
+    """The default nominal knowledge (for tests and tools that have no run config)."""
+    return resolve_knowledge(KnowledgeConfig(), plant or TwinConfig())

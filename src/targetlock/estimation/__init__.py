@@ -1,0 +1,21 @@
+"""Online estimation of what the controller needs to know, from what a real rig has: the measured
+motor (handle) angles and the tracker's observations (offset, capture time).
+
+Sits between :mod:`targetlock.model` and :mod:`targetlock.controllers`: it may use the model (for
+priors), controllers use it, never the reverse. Every estimator is bounded and sanity-checked: its
+output stays within stated physical limits whatever the input (noise, dropped frames, outliers).
+
+* :class:`JacobianEstimator` — image Jacobian, px of target motion per handle rad, 2×2 (cross
+  coupling included; it carries the working distance, the camera and the handle gain);
+* :class:`DelayEstimator` — the delay between the motor motion and the image motion it causes,
+  relative to the frames' capture time stamps (a wrongly stamped or unknown video latency);
+* :class:`BacklashEstimator` — the motor travel lost at each reversal before the image follows
+  (deadband / backlash width) and its growth with bending.
+"""
+from __future__ import annotations
+
+from .backlash import BacklashEstimator
+from .delay import DelayEstimator
+from .jacobian import JacobianEstimator, prior_jacobian
+
+__all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "BacklashEstimator"]

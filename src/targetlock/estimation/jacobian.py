@@ -1,0 +1,144 @@
+"""Image Jacobian by recursive least squares with forgetting (uncalibrated visual servoing).
+
+Model between two frames k-1, k (capture-time motor angles m, image offsets x, capture times t):
+
+    x_k - x_{k-1} = J · (m_k - m_{k-1}) + v · (t_k - t_{k-1}) + noise
+
+J (px/rad, 2×2) and the target's own image velocity v (px/s, slowly varying) are estimated together
+row-wise by RLS with exponential forgetting — without v, a moving target followed in closed loop
+biases J towards zero (the motor moves *because* the image moves), which would make any gain
+scheduled by J too high. Pairs where the motor moved but the image did
+not (a stuck tip: friction, backlash) update only v — they say nothing about J, and reading them as
+a small J would make the loop gain too high. Safeguards: Huber-clipped residuals at a multiple of their running scale and
+outright rejection of very large ones (tracker outliers, target jumps); the covariance kept within
+bounds (no wind-up without excitation); the singular values of J kept within [sv_min, sv_max] and its
+orientation (sign of the determinant and of the diagonal) that of the prior, the cross coupling at
+most ``max_coupling`` of the direct effect, and each update's relative change of J
+capped — a physically impossible estimate is never
+handed to a controller.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..model.camera import CameraParams, project, unproject
+from ..model.kinematics import tip_pose
+
+__all__ = ["JacobianEstimator", "prior_jacobian"]
+
+
+def prior_jacobian(motor: np.ndarray, *, camera: CameraParams, depth: float, tip_gain: float, tip_length: float,
+                   n_elements: int, eps: float = 1e-3) -> np.ndarray:
+    """J (px per handle rad) of a point on the optical axis at ``depth`` (m), from the kinematics with
+    the assumed tip gain: the prior the estimator starts from."""
+    phi = tip_gain * np.asarray(motor, dtype=float)
+    pose = tip_pose(phi[0], phi[1], tip_length, n_elements)
+    p_world = pose[:3, :3] @ unproject(np.array([camera.cx, camera.cy]), depth, camera, distort=False) + pose[:3, 3]
+    j = np.empty((2, 2))
+    for a in range(2):
+        d = np.zeros(2)
+        d[a] = eps * tip_gain
+        pose_d = tip_pose(phi[0] + d[0], phi[1] + d[1], tip_length, n_elements)
+        pc = pose_d[:3, :3].T @ (p_world - pose_d[:3, 3])
+        j[:, a] = (project(pc, camera, distort=False) - (camera.cx, camera.cy)) / eps
+    return j
+
+
+class JacobianEstimator:
+    """Bounded RLS estimate of the image Jacobian J (px/rad) and the target's image velocity (px/s)."""
+
+    def __init__(self, prior: np.ndarray, *, forgetting: float = 0.97, prior_weight: float = 1e-4,
+                 sv_min: float = 50.0, sv_max: float = 8000.0, min_motion: float = 1e-3, huber: float = 3.0,
+                 max_change: float = 0.1, min_image_motion: float = 3.0, max_coupling: float = 0.5) -> None:
+        self.j = np.array(prior, dtype=float)
+        self.prior = self.j.copy()
+        self.max_coupling = max_coupling
+        det = np.linalg.det(self.j)
+        self.orientation = math.copysign(1.0, det) if det != 0 else 1.0
+        self.velocity = np.zeros(2)                        # px/s
+        self.p = np.diag([1.0 / prior_weight, 1.0 / prior_weight, 100.0])
+        self.forgetting = forgetting
+        self.sv_min, self.sv_max = sv_min, sv_max
+        self.min_motion = min_motion
+        self.max_change = max_change                       # largest relative change of J per update
+        self.min_image_motion = min_image_motion           # px: less, and the tip is taken as stuck
+        self.huber = huber
+        self.scale = 10.0                                  # running scale of the residual (px)
+        self.updates = 0
+        self.rejected = 0
+        self.last_residual = 0.0                           # px, a priori, of the newest pair
+
+    def predict(self, dm: np.ndarray) -> np.ndarray:
+        """Image motion (px) the motor motion ``dm`` (rad) should cause."""
+        return self.j @ np.asarray(dm, dtype=float)
+
+    def update(self, dm: np.ndarray, dx: np.ndarray, dt: float) -> bool:
+        """One pair of increments: motor ``dm`` (rad), image ``dx`` (px) over ``dt`` (s). True if used
+        to update J (a pair without motor motion only updates the target velocity)."""
+        dm = np.asarray(dm, dtype=float)
+        dx = np.asarray(dx, dtype=float)
+        if not (np.all(np.isfinite(dm)) and np.all(np.isfinite(dx)) and math.isfinite(dt)) or dt <= 0 or dt > 0.5:
+            return False
+        if np.max(np.abs(dx)) > 1e5 or np.max(np.abs(dm)) > 10.0:
+            self.rejected += 1                   # implausible: no image or handle moves that far between frames
+            return False
+        r = dx - self.j @ dm - self.velocity * dt
+        rn = float(np.linalg.norm(r))
+        self.last_residual = rn
+        limit = self.huber * self.scale
+        if rn > 4.0 * limit and self.updates > 5:
+            self.rejected += 1                   # a tracker outlier or a jump of the target: not the scope
+            self.scale = min(self.scale * 1.1, 200.0)
+            return False
+        if rn > limit:
+            r = r * (limit / rn)
+        self.scale = min(max(0.95 * self.scale + 0.05 * min(rn, limit), 1.0), 200.0)
+        excited = np.linalg.norm(dm) >= self.min_motion
+        if np.linalg.norm(dx - self.velocity * dt) < self.min_image_motion:
+            # The image did not follow the motor: the tip sticks (friction, backlash), it does not say
+            # J is small. Only the target's velocity learns from this pair (selection biases J up: safe).
+            excited = False
+            dm = np.zeros(2)
+            r = dx - self.velocity * dt
+        phi = np.array([dm[0], dm[1], dt])
+        pm = self.p @ phi
+        gain = pm / (self.forgetting + phi @ pm)
+        theta = np.column_stack([self.j, self.velocity]) + np.outer(r, gain)
+        p = (self.p - np.outer(gain, pm)) / (self.forgetting if excited else 1.0)
+        w, v = np.linalg.eigh(0.5 * (p + p.T))
+        self.p = (v * np.clip(w, 1e-3, 1e7)) @ v.T       # bounded: no wind-up without excitation
+        self.velocity = np.clip(theta[:, 2], -2000.0, 2000.0)
+        if excited:
+            self.j = self._bounded(theta[:, :2])
+            self.updates += 1
+        return bool(excited)
+
+    def _bounded(self, j: np.ndarray) -> np.ndarray:
+        if not np.all(np.isfinite(j)):
+            return self.j
+        # J changes slowly in truth (distance, bend): one pair may move it by max_change at most.
+        step = j - self.j
+        size = float(np.linalg.norm(self.j))
+        if np.linalg.norm(step) > self.max_change * size:
+            j = self.j + step * (self.max_change * size / np.linalg.norm(step))
+        # Structure: each handle axis moves the image mostly along the axis the prior says (the
+        # bending planes are the image axes, up to a moderate coupling when both axes are bent).
+        diag_p = np.diag(self.prior)
+        for a in range(2):
+            if np.sign(j[a, a]) != np.sign(diag_p[a]):
+                return self.j
+            b = 1 - a
+            j[b, a] = np.clip(j[b, a], -self.max_coupling * abs(j[a, a]), self.max_coupling * abs(j[a, a]))
+        u, s, vt = np.linalg.svd(j)
+        s = np.clip(s, self.sv_min, self.sv_max)
+        out = (u * s) @ vt
+        if math.copysign(1.0, np.linalg.det(out)) != self.orientation:
+            return self.j                        # mirrored image: impossible, keep the last good one
+        return out
+
+    @property
+    def gain_scale(self) -> float:
+        """Geometric mean of the singular values (px/rad): the 'size' of J."""
+        return float(math.sqrt(abs(np.linalg.det(self.j))))

@@ -1,0 +1,257 @@
+"""Robustness benchmark (``targetlock bench robustness``): an unknown scope at any working distance.
+
+A seeded random set of cases, each a plant the controllers do NOT know: a scope drawn around one of
+the presets (friction, slack or pretension, cable and tip stiffness, handle gain ±15 %, drive speed
+and time constant), camera focal length ±10 %, video latency 0.25–0.6 s, 15–25 fps, target distance
+1–15 cm (log-uniform: the report's recommended 1–2 cm is well represented) with the path scaled to the
+distance (the same angular motion), tracker noise and dropped frames, a random start bend, and one
+of six target motions none of the controllers was tuned on:
+
+* ``smooth``   — a random smooth path (three sines per axis);
+* ``stops``    — waypoints with stops;
+* ``move``     — a 2 cm move (at 12 cm; scaled) within 1 s, then rest;
+* ``drift``    — slow drift;
+* ``rotation`` — the shaft rotating ~10° about its axis (the scene turns about the base axis);
+* ``step``     — a target appearing 100–180 px off centre, then rest.
+
+Every controller runs with its **nominal** knowledge (preset ``calibrated``, 0.4 s, 12 cm) unless its
+name ends in ``+oracle`` (then it gets the plant's truth). Scores per case: the rms and peak of the
+true image error, where a sample with the target out of the image counts as the image's half
+diagonal (so losing the target is never rewarded), the fraction of time out of view, and the rms of
+the error over the last 3 s of the resting cases (``move`` and ``step``: sustained oscillation at rest
+shows there). Ratios are to PI (I = 300) on the same case.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..controllers import ControllerConfig, KnowledgeConfig
+from ..loop.runner import LoopConfig
+from ..model.kinematics import tip_pose
+from ..model.twin import PRESETS, twin_config
+from ..rig.simulated import ObservationNoise
+from .target_lock import RunConfig, run_target_lock
+
+__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
+           "format_table", "bench_robustness"]
+
+MOTIONS = ("smooth", "stops", "move", "drift", "rotation", "step")
+RESTING = ("move", "step")
+BENCH_CONTROLLERS = ("pi", "pi-hc", "pi-hc2", "ik", "pi-smith", "pi-smith+oracle", "adaptive", "adaptive+oracle")
+SAMPLE_DT = 0.05       # s, waypoint spacing of the generated paths
+
+
+@dataclass(frozen=True)
+class Case:
+    """One random plant + target motion (everything a run needs, nothing the controller gets)."""
+    index: int
+    preset: str
+    endoscope: dict        # overrides of the preset's endoscope parameters
+    drive: dict
+    camera: dict           # fx, fy, fps, latency
+    distance: float        # m
+    start_tip_deg: tuple[float, float]
+    motion: str
+    noise_px: float
+    drop_probability: float
+    waypoints: np.ndarray  # (n, 4): t, x, y, z offsets in the start camera frame (m)
+
+    def describe(self) -> str:
+        return (f"case {self.index}: {self.motion}, preset {self.preset}, {100 * self.distance:.1f} cm, "
+                f"latency {self.camera['latency']:.2f} s, {self.camera['fps']:.0f} fps")
+
+
+def _smooth(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * u)
+
+
+def _motion(kind: str, rng: np.random.Generator, d: float, seconds: float, start_tip: tuple[float, float],
+            f_px: float) -> np.ndarray:
+    """Target offsets (m, start camera frame) sampled every SAMPLE_DT over ``seconds``, scaled to ``d``."""
+    t = np.arange(0.0, seconds + SAMPLE_DT, SAMPLE_DT)
+    xyz = np.zeros((t.size, 3))
+    start = 1.0
+    if kind == "smooth":
+        for ax in (0, 1):
+            for _ in range(3):
+                a = d * rng.uniform(0.05, 0.2)
+                f = rng.uniform(0.03, 0.2)
+                ph = rng.uniform(0, 2 * np.pi)
+                xyz[:, ax] += a * (np.sin(2 * np.pi * f * (t - start) + ph) - np.sin(ph)) * (t >= start)
+    elif kind == "stops":
+        p = np.zeros(3)
+        tk = start
+        while tk < seconds:
+            q = np.array([*rng.uniform(-0.5, 0.5, 2) * d, 0.0])
+            move, stop = rng.uniform(1.0, 2.5), rng.uniform(0.5, 2.0)
+            s = _smooth((t - tk) / move)[:, None]
+            sel = t >= tk
+            xyz[sel] = (p + s * (q - p))[sel]
+            p, tk = q, tk + move + stop
+    elif kind == "move":
+        direction = rng.uniform(0, 2 * np.pi)
+        amp = 0.02 * d / 0.12
+        xyz[:, 0] = amp * math.cos(direction) * _smooth(t - start)
+        xyz[:, 1] = amp * math.sin(direction) * _smooth(t - start)
+    elif kind == "drift":
+        direction = rng.uniform(0, 2 * np.pi)
+        v = d * rng.uniform(0.02, 0.05)   # ≈ 1–3°/s
+        xyz[:, 0] = v * math.cos(direction) * np.maximum(t - start, 0.0)
+        xyz[:, 1] = v * math.sin(direction) * np.maximum(t - start, 0.0)
+    elif kind == "rotation":
+        # The endoscope rolls by theta about its base axis = the scene turns by -theta about it.
+        theta = math.radians(rng.uniform(8.0, 12.0)) * rng.choice([-1.0, 1.0]) * _smooth((t - start) / rng.uniform(1.0, 3.0))
+        pose = tip_pose(math.radians(start_tip[0]), math.radians(start_tip[1]), 0.12, 30)
+        rot = pose[:3, :3]
+        anchor = pose[:3, 3] + d * rot[:, 2]
+        c, s = np.cos(-theta), np.sin(-theta)
+        moved = np.stack([c * anchor[0] - s * anchor[1], s * anchor[0] + c * anchor[1], np.full_like(c, anchor[2])], 1)
+        xyz = (moved - anchor) @ rot
+    elif kind == "step":
+        off = rng.uniform(100.0, 180.0)
+        direction = rng.uniform(0, 2 * np.pi)
+        xyz[:, 0] = off / f_px * d * math.cos(direction)
+        xyz[:, 1] = off / f_px * d * math.sin(direction)
+    else:
+        raise ValueError(f"motion = {kind!r}; allowed: {', '.join(MOTIONS)}")
+    return np.column_stack([t, xyz])
+
+
+def draw_cases(n: int, seed: int, seconds: float = 12.0) -> list[Case]:
+    """``n`` random cases from ``seed`` (the motions cycle so each appears equally often)."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for i in range(n):
+        u = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
+        preset = PRESETS[int(rng.integers(len(PRESETS)))]
+        base = twin_config(preset).endoscope
+        endo = {"mu_n": base.mu_n * u(0.75, 1.3), "friction_offset": base.friction_offset * u(0.75, 1.3),
+                "mu_f": base.mu_f * u(0.75, 1.3), "cable_stiffness": base.cable_stiffness * u(0.7, 1.3),
+                "tip_stiffness": base.tip_stiffness * u(0.75, 1.3), "cable_slack": base.cable_slack + u(-0.0003, 0.0003),
+                "handle_radius": base.handle_radius * u(0.85, 1.15)}
+        drive = {"time_constant": u(0.01, 0.04), "max_velocity_ticks": u(70000.0, 100000.0)}
+        f_px = 300.0 * u(0.9, 1.1)
+        camera = {"fx": f_px, "fy": f_px, "fps": u(15.0, 25.0), "latency": u(0.25, 0.6)}
+        d = float(math.exp(rng.uniform(math.log(0.01), math.log(0.15))))
+        start = (u(-35.0, 35.0), u(-25.0, 25.0))
+        motion = MOTIONS[i % len(MOTIONS)]
+        wp = _motion(motion, rng, d, seconds, start, f_px)
+        cases.append(Case(index=i, preset=preset, endoscope=endo, drive=drive, camera=camera, distance=d,
+                          start_tip_deg=start, motion=motion, noise_px=u(0.0, 1.5), drop_probability=u(0.0, 0.08),
+                          waypoints=wp))
+    return cases
+
+
+def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int) -> RunConfig:
+    """The run of ``controller`` on ``case`` (name ``kind+oracle`` for the plant's truth)."""
+    kind, _, oracle = controller.partition("+")
+    twin = twin_config(case.preset, {"endoscope": case.endoscope, "drive": case.drive, "camera": case.camera,
+                                     "scene": {"path": "waypoints", "waypoints_file": str(waypoints_file),
+                                               "distance": case.distance, "start_tip_deg": case.start_tip_deg}})
+    return RunConfig(twin=twin, controller=ControllerConfig(kind=kind),
+                     knowledge=KnowledgeConfig(source="oracle" if oracle == "oracle" else "nominal"),
+                     loop=LoopConfig(seconds=seconds, metrics_after=1.0),
+                     tracker=ObservationNoise(noise_px=case.noise_px, drop_probability=case.drop_probability,
+                                              seed=seed + case.index),
+                     seed=seed + case.index)
+
+
+def score(data: np.ndarray, width: int, height: int, after: float, rest_window: float = 3.0) -> dict:
+    """Per-case scores (px) from recorded rows (target_lock.COLUMNS)."""
+    t, err = data[:, 0], data[:, 3]
+    sel = t >= after
+    out = ~np.isfinite(err)
+    lost_px = 0.5 * math.hypot(width, height)
+    e = np.where(out, lost_px, err)[sel]
+    rest = np.where(out, lost_px, err)[t >= t[-1] - rest_window]
+    return {"rms_px": float(np.sqrt(np.mean(e ** 2))), "peak_px": float(np.max(e)),
+            "out_of_view": float(np.mean(out[sel])), "rest_rms_px": float(np.sqrt(np.mean(rest ** 2)))}
+
+
+def run_robustness(n_cases: int = 60, seed: int = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
+                   seconds: float = 12.0, progress: bool = False) -> dict:
+    """Run every controller on every case; returns per-case scores and the per-controller summary."""
+    cases = draw_cases(n_cases, seed, seconds)
+    if "pi" not in controllers:
+        controllers = ("pi",) + tuple(controllers)
+    per: dict[str, list[dict]] = {c: [] for c in controllers}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="targetlock-robustness-") as tmp:
+        for case in cases:
+            path = Path(tmp) / f"case{case.index}.csv"
+            with path.open("w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["t", "x", "y", "z"])
+                w.writerows(case.waypoints.tolist())
+            for c in controllers:
+                cfg = case_config(case, c, path, seconds, seed)
+                s = run_target_lock(cfg)
+                sc = score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
+                sc.update(case=case.index, motion=case.motion, distance=case.distance)
+                per[c].append(sc)
+            if progress:
+                print(case.describe() + ": " + ", ".join(f"{c} {per[c][-1]['rms_px']:.0f}" for c in controllers),
+                      flush=True)
+    return {"seed": seed, "cases": n_cases, "seconds": seconds, "wall_seconds": time.perf_counter() - t0,
+            "per_case": per, "summary": summarise(per)}
+
+
+def summarise(per: dict[str, list[dict]]) -> dict:
+    """Per controller: median / p95 / worst rms and peak, out-of-view cases, ratios to PI on the same case."""
+    pi = per["pi"]
+    out = {}
+    for c, rows in per.items():
+        rms = np.array([r["rms_px"] for r in rows])
+        peak = np.array([r["peak_px"] for r in rows])
+        ratio = rms / np.array([r["rms_px"] for r in pi])
+        left = np.array([r["out_of_view"] > 0 for r in rows])
+        pi_kept = np.array([r["out_of_view"] == 0 for r in pi])
+        near = np.array([r["distance"] <= 0.02 for r in rows])
+        in_view_near = 1.0 - np.array([r["out_of_view"] for r in rows])[near]
+        rest = np.array([r["rest_rms_px"] for r, p in zip(rows, pi) if r["motion"] in RESTING])
+        out[c] = {"rms_median": float(np.median(rms)), "rms_p95": float(np.percentile(rms, 95)), "rms_worst": float(rms.max()),
+                  "peak_median": float(np.median(peak)), "peak_p95": float(np.percentile(peak, 95)),
+                  "peak_worst": float(peak.max()), "left_image_fraction": float(left.mean()),
+                  "left_where_pi_kept": int(np.sum(left & pi_kept)),
+                  "ratio_to_pi_median": float(np.median(ratio)), "ratio_to_pi_worst": float(ratio.max()),
+                  "median_ratio_of_medians": float(np.median(rms) / np.median([r["rms_px"] for r in pi])),
+                  "cases_worse_than_pi_by_10pct": int(np.sum(ratio > 1.1)),
+                  "in_view_near_median": float(np.median(in_view_near)) if in_view_near.size else math.nan,
+                  "rest_rms_worst": float(rest.max()) if rest.size else math.nan}
+    return out
+
+
+def format_table(summary: dict) -> list[str]:
+    lines = [f"{'controller':<18} {'rms med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
+             f"{'left img':>8} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8}"]
+    for c, s in summary.items():
+        lines.append(f"{c:<18} {s['rms_median']:>7.1f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
+                     f"{s['peak_median']:>8.0f} {s['peak_p95']:>6.0f} {s['peak_worst']:>6.0f} | "
+                     f"{100 * s['left_image_fraction']:>7.0f}% {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
+                     f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
+                     f"{s['rest_rms_worst']:>8.1f}")
+    return lines
+
+
+def bench_robustness(n_cases: int = 60, seed: int = 0) -> dict:
+    """``targetlock bench robustness``: print the table; returns the summary (the JSON line)."""
+    from ..config import ConfigError
+    if not 1 <= n_cases <= 10000:
+        raise ConfigError(f"--cases = {n_cases}; allowed: [1, 10000]")
+    if seed < 0:
+        raise ConfigError(f"--seed = {seed}; allowed: [0, 2^63)")
+    r = run_robustness(n_cases, seed)
+    print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
+          f"unless '+oracle'; rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
+    print("\n".join(format_table(r["summary"])))
+    print(f"({r['wall_seconds']:.0f} s on one core)")
+    return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
+            "controllers": r["summary"]}

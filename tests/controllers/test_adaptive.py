@@ -1,0 +1,75 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from targetlock.controllers import AdaptiveController, ControllerConfig, KnowledgeConfig, nominal_knowledge
+from targetlock.experiments.target_lock import RunConfig, run_target_lock
+from targetlock.loop.runner import LoopConfig
+from targetlock.rig.base import Observation
+
+RPT = 1.6e-5
+
+
+def make(**kw):
+    return AdaptiveController(ControllerConfig(kind="adaptive", **kw), rad_per_tick=RPT, lower=np.full(2, -2.0),
+                              upper=np.full(2, 2.0), control_dt=0.02, knowledge=nominal_knowledge())
+
+
+def drive(c, image, seconds=8.0, frame=0.05, width=0.068):
+    """Step the controller with a motor sweep, and frames 0.3 s late showing ``image(tip)`` of the tip,
+    which follows the motor through a backlash of ``width`` (rad, the calibrated scope's)."""
+    c.reset(np.zeros(2), 0.0)
+    t = 0.02 * np.arange(int(seconds / 0.02))
+    m = np.column_stack([0.3 * np.sin(1.5 * t), 0.2 * np.sin(1.1 * t)])
+    tip = np.zeros_like(m)
+    for k in range(1, t.size):
+        tip[k] = np.clip(tip[k - 1], m[k] - width / 2, m[k] + width / 2)
+    lag = int(round(0.3 / 0.02))
+    for k in range(1, t.size):
+        obs = None
+        if k % int(frame / 0.02) == 0 and k >= lag:
+            obs = Observation(capture_time=t[k - lag], offset=image(tip[k - lag], t[k - lag]), valid=True)
+        c.step(obs, m[k], t[k])
+    return c
+
+
+def test_supervisor_trusts_a_model_that_predicts_the_image():
+    c = make()
+    j = np.array([[-500.0, 40.0], [-30.0, -450.0]])
+    drive(c, lambda m, t: j @ m)
+    assert c.trust > 0.8
+    assert np.linalg.norm(c.jacobian.j - j) / np.linalg.norm(j) < 0.15
+
+
+def test_supervisor_falls_back_while_the_image_contradicts_the_model():
+    rng = np.random.default_rng(0)
+    c = make()
+    drive(c, lambda m, t: rng.normal(0.0, 80.0, 2))     # the image moves, but not with the motors
+    assert c.trust == 0.0
+
+
+def step_config(distance, kind, knowledge=None, seconds=10.0):
+    cfg = RunConfig(controller=ControllerConfig(kind=kind), knowledge=knowledge or KnowledgeConfig(),
+                    loop=LoopConfig(seconds=seconds))
+    scene = dataclasses.replace(cfg.twin.scene, path="step", distance=distance, step_offset_px=(-150.0, 60.0))
+    return dataclasses.replace(cfg, twin=dataclasses.replace(cfg.twin, scene=scene))
+
+
+def test_at_one_and_a_half_centimetres_it_keeps_the_target_that_pi_loses():
+    pi = run_target_lock(step_config(0.015, "pi"))
+    ad = run_target_lock(step_config(0.015, "adaptive"))
+    assert pi["out_of_view_fraction"] > 0.5
+    assert ad["out_of_view_fraction"] == 0.0
+    last = ad["_data"][-100:, 3]                      # the last 2 s: settled near the centre, at rest
+    assert np.nanmax(last) < 40.0
+
+
+@pytest.mark.parametrize("knowledge", [
+    KnowledgeConfig(preset="uncalibrated", fx=600.0, fy=600.0, depth=0.01, latency=0.6),
+    KnowledgeConfig(preset="looped-shaft", fx=150.0, fy=150.0, depth=0.5, latency=0.2)])
+def test_a_deliberately_wrong_model_is_not_worse_than_pi(knowledge):
+    pi = run_target_lock(step_config(0.04, "pi"))
+    ad = run_target_lock(step_config(0.04, "adaptive", knowledge))
+    assert ad["out_of_view_fraction"] == 0.0
+    assert ad["rms_px"] <= 1.1 * pi["rms_px"]

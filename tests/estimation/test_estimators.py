@@ -1,0 +1,124 @@
+import math
+
+import numpy as np
+import pytest
+
+from targetlock.estimation import BacklashEstimator, DelayEstimator, JacobianEstimator, prior_jacobian
+from targetlock.model.camera import CameraParams
+
+J_TRUE = np.array([[-620.0, 90.0], [-60.0, -540.0]])     # px per handle rad, with cross coupling
+PRIOR = np.array([[-300.0, 0.0], [0.0, -300.0]])
+
+
+def smooth_motion(t):
+    """Handle angles (rad) of an excitation like a lock's own motion: two axes, several frequencies."""
+    return np.column_stack([0.2 * np.sin(1.3 * t) + 0.05 * np.sin(4.1 * t),
+                            0.15 * np.sin(0.9 * t + 1.0) + 0.05 * np.sin(3.3 * t)])
+
+
+def feed(est, t, m, x):
+    for k in range(1, len(t)):
+        est.update(m[k] - m[k - 1], x[k] - x[k - 1], t[k] - t[k - 1])
+
+
+def test_jacobian_converges_with_a_moving_target_noise_and_outliers():
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 20.0, 0.05)
+    m = smooth_motion(t)
+    target = np.column_stack([15.0 * t, -8.0 * t])                 # the target drifts in the image
+    x = m @ J_TRUE.T + target + rng.normal(0.0, 1.0, (t.size, 2))
+    bad = rng.random(t.size) < 0.03
+    x[bad] += rng.uniform(-150, 150, (bad.sum(), 2))                # tracker outliers
+    keep = rng.random(t.size) > 0.1                                  # dropped frames
+    est = JacobianEstimator(PRIOR)
+    feed(est, t[keep], m[keep], x[keep])
+    assert np.linalg.norm(est.j - J_TRUE) / np.linalg.norm(J_TRUE) < 0.15
+    assert est.velocity == pytest.approx([15.0, -8.0], abs=5.0)
+    assert est.rejected > 0
+
+
+def test_jacobian_stays_bounded_and_oriented_under_garbage():
+    rng = np.random.default_rng(2)
+    est = JacobianEstimator(PRIOR, sv_min=100.0, sv_max=3000.0)
+    for _ in range(2000):
+        dm = rng.normal(0, 0.05, 2) * rng.choice([1.0, 1e6, np.nan], p=[0.8, 0.1, 0.1])
+        dx = rng.normal(0, 1.0, 2) * rng.choice([1.0, 1e300, -1e9, np.inf], p=[0.7, 0.1, 0.1, 0.1])
+        est.update(dm, dx, rng.choice([0.05, 0.0, -1.0, np.nan]))
+        s = np.linalg.svd(est.j, compute_uv=False)
+        assert np.all(np.isfinite(est.j)) and 100.0 - 1e-6 <= s.min() and s.max() <= 3000.0 + 1e-6
+        assert np.linalg.det(est.j) > 0 and est.j[0, 0] < 0 and est.j[1, 1] < 0
+
+
+def test_a_stuck_tip_does_not_shrink_the_jacobian():
+    """Motor motion without image motion (deadband, friction) says nothing about J."""
+    est = JacobianEstimator(PRIOR)
+    for _ in range(200):
+        est.update(np.array([0.01, 0.0]), np.zeros(2), 0.05)
+    np.testing.assert_allclose(est.j, PRIOR)
+
+
+def test_prior_is_the_kinematic_jacobian_and_grows_at_short_distance():
+    cam = CameraParams()
+    near = prior_jacobian(np.zeros(2), camera=cam, depth=0.01, tip_gain=0.8, tip_length=0.12, n_elements=30)
+    far = prior_jacobian(np.zeros(2), camera=cam, depth=0.12, tip_gain=0.8, tip_length=0.12, n_elements=30)
+    # A bend turns the camera (f px/rad) and moves it sideways by about L/2 per rad: f·(1 + L/2d).
+    assert abs(far[0, 0]) == pytest.approx(0.8 * 300 * (1 + 0.06 / 0.12), rel=0.1)
+    assert abs(near[0, 0]) > 4 * abs(far[0, 0])
+    assert abs(far[0, 1]) < 1e-6 * abs(far[0, 0])
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.2, 0.35])
+def test_delay_is_found_within_one_frame(delay):
+    rng = np.random.default_rng(3)
+    dt_frame = 1.0 / 20.0
+    t_motor = np.arange(-2.0, 12.0, 0.02)
+    m = smooth_motion(t_motor) + np.column_stack([np.cumsum(rng.normal(0, 0.004, t_motor.size))] * 2)
+    motor_at = lambda ts: np.column_stack([np.interp(ts, t_motor, m[:, k]) for k in range(2)])  # noqa: E731
+    est = DelayEstimator(initial=0.0)
+    for tc in np.arange(0.0, 12.0, dt_frame):
+        x = motor_at(np.array([tc - delay]))[0] @ J_TRUE.T + rng.normal(0, 1.0, 2)
+        est.add(tc, x, motor_at, J_TRUE)
+    assert est.delay == pytest.approx(delay, abs=dt_frame)
+
+
+def test_delay_stays_in_bounds_without_motion_or_with_garbage():
+    est = DelayEstimator(initial=0.1, lo=-0.2, hi=0.8)
+    rng = np.random.default_rng(4)
+    still = lambda ts: np.zeros((np.size(ts), 2))  # noqa: E731
+    for k in range(300):
+        est.add(0.05 * k, rng.normal(0, 50, 2) if k % 7 else np.array([np.nan, 1e300]), still, J_TRUE)
+    assert est.delay == 0.1
+
+
+def play(m, width):
+    """Backlash: the output follows the input only beyond half the width either side."""
+    out = np.empty_like(m)
+    y = m[0]
+    for k, u in enumerate(m):
+        y = min(max(y, u - width / 2), u + width / 2)
+        out[k] = y
+    return out
+
+
+@pytest.mark.parametrize("width", [0.06, 0.12])
+def test_backlash_width_within_20_percent_after_a_few_reversals(width):
+    t = np.arange(0.0, 30.0, 0.05)
+    m = np.column_stack([0.3 * np.sin(2 * np.pi * t / 6.0), 0.2 * np.sin(2 * np.pi * t / 8.0 + 0.5)])
+    j = np.diag([-500.0, -500.0])
+    tip = np.column_stack([play(m[:, 0], width), play(m[:, 1], width)])
+    x = tip @ j.T + np.random.default_rng(5).normal(0, 0.5, tip.shape)
+    est = BacklashEstimator(threshold_px=3.0)
+    for k in range(t.size):
+        est.add(m[k], x[k], j)
+    assert est.reversals >= 4
+    assert est.width(0.3) == pytest.approx(width, rel=0.2)
+
+
+def test_backlash_estimate_is_bounded():
+    est = BacklashEstimator(max_width=0.5)
+    rng = np.random.default_rng(6)
+    for _ in range(2000):
+        est.add(rng.normal(0, 1.0, 2), rng.normal(0, 500, 2) * rng.choice([1, np.nan], p=[0.95, 0.05]), np.diag([-300.0, -300.0]))
+    for bend in (0.0, 1.0, 3.0):
+        assert 0.0 <= est.width(bend) <= 0.5
+    assert math.isfinite(est.width(1.0))

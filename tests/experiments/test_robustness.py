@@ -1,0 +1,41 @@
+import math
+
+import numpy as np
+
+from targetlock.experiments.robustness import MOTIONS, draw_cases, run_robustness, score
+
+
+def test_cases_are_seeded_and_within_the_stated_ranges():
+    a, b = draw_cases(12, seed=3), draw_cases(12, seed=3)
+    assert [c.camera for c in a] == [c.camera for c in b]
+    assert {c.motion for c in a} == set(MOTIONS)
+    for c in a:
+        assert 0.25 <= c.camera["latency"] <= 0.6 and 15.0 <= c.camera["fps"] <= 25.0
+        assert 0.01 <= c.distance <= 0.15
+        assert np.all(np.isfinite(c.waypoints)) and np.all(np.diff(c.waypoints[:, 0]) > 0)
+    assert [c.camera for c in draw_cases(12, seed=4)] != [c.camera for c in a]
+
+
+def test_paths_scale_with_the_distance():
+    cases = [c for c in draw_cases(60, seed=0) if c.motion == "move"]
+    ext = [np.abs(c.waypoints[-1, 1:3]).max() / c.distance for c in cases]
+    assert max(ext) / min(ext) < 3.0       # the same angular motion at any distance
+
+
+def test_out_of_view_counts_as_the_half_diagonal():
+    t = np.arange(0.0, 4.0, 0.02)
+    data = np.zeros((t.size, 16))
+    data[:, 0] = t
+    data[:, 3] = 10.0
+    data[t > 3.0, 3] = np.nan
+    s = score(data, 720, 576, after=1.0)
+    assert s["peak_px"] == math.hypot(360, 288)
+    assert 0.3 < s["out_of_view"] < 0.4
+
+
+def test_a_small_run_summarises_every_controller_against_pi():
+    r = run_robustness(2, seed=0, controllers=("pi", "ik"), seconds=3.0)
+    s = r["summary"]
+    assert set(s) == {"pi", "ik"}
+    assert s["pi"]["ratio_to_pi_median"] == 1.0 and s["pi"]["cases_worse_than_pi_by_10pct"] == 0
+    assert all(math.isfinite(s["ik"][k]) for k in ("rms_median", "rms_p95", "rms_worst", "peak_worst"))
