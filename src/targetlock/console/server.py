@@ -207,14 +207,10 @@ class FrameHub:
 
 
 # ------------------------------------------------------------------------------------------ app
-def make_app(session: ConsoleSession, *, token: str | None = None, state_period: float = 0.1) -> Starlette:
-    """The console's ASGI app (wrapped in the token/origin guard)."""
-    hub: dict[str, FrameHub] = {}
-
-    def frame_hub() -> FrameHub:
-        if "hub" not in hub:
-            hub["hub"] = FrameHub(session)
-        return hub["hub"]
+def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub | None = None,
+             state_period: float = 0.1) -> Guard:
+    """The console's ASGI app (wrapped in the token/origin guard); ``state_period`` (s) between state messages."""
+    hub = hub or FrameHub(session)
 
     async def index(request: Request):
         return FileResponse(STATIC / "index.html", headers={"cache-control": "no-store"})
@@ -277,7 +273,7 @@ def make_app(session: ConsoleSession, *, token: str | None = None, state_period:
 
     async def ws_frames(ws: WebSocket):
         await ws.accept()
-        h = frame_hub()
+        h = hub
         h.watch()
         seq = 0
         try:
@@ -303,7 +299,6 @@ def make_app(session: ConsoleSession, *, token: str | None = None, state_period:
         WebSocketRoute("/ws/frames", ws_frames),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ])
-    app.state.frame_hub = frame_hub
     return Guard(app, token)
 
 
@@ -318,7 +313,8 @@ class ConsoleServer:
         self.session = session
         self.host = host
         self.token = token
-        self.app = make_app(session, token=token)
+        self.hub = FrameHub(session)
+        self.app = make_app(session, token=token, hub=self.hub)
         self.server = uvicorn.Server(uvicorn.Config(self.app, host=host, port=port, log_level="warning",
                                                     ws="websockets-sansio", lifespan="off"))
         try:   # bound now: the address is known (port 0 = any free port) and a busy port fails here, clearly

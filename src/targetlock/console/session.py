@@ -25,6 +25,7 @@ import collections
 import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -330,11 +331,18 @@ class ConsoleSession:
             ctrl.step(dataclasses.replace(obs, capture_time=0.05 * k), here, 0.05 * k)
 
     # ---------------------------------------------------------------- loop thread
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="targetlock-console-loop", daemon=True)
+    def start(self, loop_nice: int | None = None) -> None:
+        """Start the loop thread; ``loop_nice`` (e.g. -10): its scheduling priority, where the OS allows it
+        (Linux, root or CAP_SYS_NICE) — a busy host (browsers, other work) then takes CPU from others first."""
+        self._thread = threading.Thread(target=self._run, args=(loop_nice,), name="targetlock-console-loop", daemon=True)
         self._thread.start()
 
-    def _run(self) -> None:
+    def _run(self, loop_nice: int | None) -> None:
+        if loop_nice is not None:
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), loop_nice)  # this thread only (Linux)
+            except (OSError, AttributeError) as exc:
+                log.warning("cannot raise the loop thread's priority to nice %d: %s", loop_nice, exc)
         try:
             self.loop.run(7 * 86400.0, self._on_tick)
         except _Stop:

@@ -199,6 +199,7 @@ function showStatus(s) {
   for (const a of s.actions.slice().reverse()) { const li = document.createElement("li"); li.textContent = `${a.time.slice(11, 23)} ${a.action} ${a.who}`; $("actions").appendChild(li); }
 }
 
+let lastPlot = 0;
 function connectState() {
   const ws = new WebSocket(wsBase + "/ws/state");
   ws.onmessage = (ev) => {
@@ -214,7 +215,8 @@ function connectState() {
     if (drop) for (const k of Object.keys(series)) series[k].splice(0, drop);
     for (const k of Object.keys(sigSeries)) { const a = sigSeries[k]; let j = 0; while (j < a.length && a[j][0] < t1 - HISTORY - 1) j++; if (j) a.splice(0, j); }
     showStatus(m.status);
-    drawPlots();
+    const now = performance.now();
+    if (now - lastPlot > 190) { lastPlot = now; drawPlots(); }   // 5 Hz is plenty for the eye, and cheap
   };
   ws.onclose = () => setTimeout(connectState, 1000);
 }

@@ -1,0 +1,127 @@
+"""Benchmark of the console (``targetlock console --bench``): does watching cost the loop anything?
+
+On the twin (rendered frames, feature tracker, lock engaged on a moving target) it measures, over
+windows of ``seconds`` each:
+
+* the loop's lateness per tick (ms; p50, p99, max) with no page attached and with ``pages`` pages
+  of headless Chromium attached;
+* the CPU time of the console's process (loop + server, in % of one core) in both cases: the
+  difference is the cost of serving the pages (JPEG encoding, WebSockets);
+* frame-to-screen latency in the browser (ms, p50/p95): from the moment the tracker finished a
+  frame to the moment the page drew it on its canvas (both clocks are this machine's).
+
+The browsers run on the same machine and compete for its cores; they are started with a lower
+scheduling priority (``browser_nice``), as an operator's browser on the loop's host should be.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import from_dict
+from ..experiments.target_lock import RunConfig
+from .server import ConsoleServer
+from .session import ConsoleSession
+
+__all__ = ["bench_console"]
+
+
+def _thread_cpu() -> dict[int, float]:
+    """CPU time (s) of each thread of this process (Linux /proc), by native thread id."""
+    hz = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for d in Path("/proc/self/task").iterdir():
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            f = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            out[int(d.name)] = (int(f[11]) + int(f[12])) / hz   # utime + stime
+    return out
+
+
+def _window(session: ConsoleSession, server: ConsoleServer, seconds: float) -> dict:
+    loop_tid, http_tid = session._thread.native_id, server._thread.native_id
+    threads0, cpu0, wall0 = _thread_cpu(), time.process_time(), time.perf_counter()
+    time.sleep(seconds)
+    threads1, cpu, wall = _thread_cpu(), time.process_time() - cpu0, time.perf_counter() - wall0
+    used = {tid: threads1[tid] - threads0.get(tid, 0.0) for tid in threads1}
+    loop_cpu = used.get(loop_tid, 0.0)
+    serve_cpu = cpu - loop_cpu    # the HTTP/WebSocket thread, JPEG encoder threads, everything but the loop
+    late = session.lateness_ms()[-int(seconds * session.cfg.loop.rate):]
+    return {"lateness_p50_ms": float(np.percentile(late, 50)), "lateness_p99_ms": float(np.percentile(late, 99)),
+            "lateness_max_ms": float(late.max()), "ticks": int(late.size), "cpu_percent": 100.0 * cpu / wall,
+            "loop_thread_cpu_percent": 100.0 * loop_cpu / wall, "other_threads_cpu_percent": 100.0 * serve_cpu / wall,
+            "http_thread_cpu_percent": 100.0 * used.get(http_tid, 0.0) / wall,
+            "load_average_1min": os.getloadavg()[0]}
+
+
+def _descendants(pid: int) -> list[int]:
+    """Process ids below ``pid`` (Linux /proc)."""
+    kids: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            kids.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for k in kids.get(todo.pop(), []):
+            out.append(k)
+            todo.append(k)
+    return out
+
+
+def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bin/chromium",
+                  screenshot: str | None = None, browser_nice: int = 10,
+                  loop_nice: int | None = -10) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    cfg = from_dict(RunConfig, {"vision": True, "realtime": True, "twin": {"scene": {"path": "linear"}}})
+    session = ConsoleSession(cfg)
+    server = ConsoleServer(session, port=0)
+    session.start(loop_nice=loop_nice)
+    server.start_in_thread()
+    out: dict = {"seconds": seconds, "pages": pages, "browser_nice": browser_nice, "loop_nice": loop_nice}
+    try:
+        time.sleep(1.0)
+        session.engage("bench")
+        time.sleep(2.0)
+        out["no_page"] = _window(session, server, seconds)
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--disable-gpu"])
+            if browser_nice:   # the browsers share this machine's cores: they get less CPU than the loop (renderers inherit)
+                for pid in _descendants(os.getpid()):
+                    with contextlib.suppress(OSError):
+                        os.setpriority(os.PRIO_PROCESS, pid, browser_nice)
+            tabs = []
+            for _ in range(pages):
+                page = browser.new_context(viewport={"width": 1400, "height": 900}).new_page()
+                page.goto(server.url())
+                tabs.append(page)
+            for page in tabs:
+                page.wait_for_function("window.tl.frames >= 5", timeout=30000)
+                page.evaluate("window.tl.latencies = []")
+            hub = server.hub
+            enc0, n0 = hub.encode_seconds, hub.encoded_frames
+            out["with_pages"] = _window(session, server, seconds)
+            lat = np.concatenate([np.asarray(p.evaluate("window.tl.latencies"), float) for p in tabs])
+            frames = [p.evaluate("window.tl.frames") for p in tabs]
+            out["frame_to_screen_ms"] = {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
+                                         "samples": int(lat.size)}
+            n = max(hub.encoded_frames - n0, 1)
+            out["jpeg_encode_ms"] = 1e3 * (hub.encode_seconds - enc0) / n
+            out["frames_per_page"] = frames
+            out["camera_fps"] = cfg.twin.camera.fps
+            if screenshot:
+                tabs[0].screenshot(path=screenshot)
+            browser.close()
+        out["serving_cpu_percent"] = (out["with_pages"]["other_threads_cpu_percent"]
+                                      - out["no_page"]["other_threads_cpu_percent"])
+    finally:
+        server.stop()
+        session.close()
+    return out
