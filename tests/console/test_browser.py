@@ -208,3 +208,49 @@ def test_not_on_loopback_every_request_needs_the_token(browser, session):
             p.close()
     finally:
         srv.stop()
+
+
+def test_record_writes_a_run_folder(page, session):
+    page.locator("#record").click()
+    page.wait_for_function("window.tl.status.recording !== null", timeout=5000)
+    folder = session.status()["recording"]
+    time.sleep(1.5)
+    page.locator("#record").click()
+    page.wait_for_function("window.tl.status.recording === null", timeout=15000)
+    from pathlib import Path
+    run = Path(folder)
+    for name in ("config.toml", "timeseries.csv", "tracking.png", "summary.json"):
+        assert (run / name).is_file(), name
+    rows = (run / "timeseries.csv").read_text().splitlines()
+    assert rows[0].startswith("t,err_x,err_y,err") and len(rows) > 40   # ~50 rows per second
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["controller"] == session.cfg.controller.kind and summary["seconds"] > 1.0
+    assert any(a["action"] == "record-start" for a in summary["actions"])
+
+
+def test_twin_target_path_changes_without_a_jump(page, session):
+    scene = session.rig.scene
+    before = scene.target_position(session.time)
+    page.select_option("#path", "ellipse")
+    _wait(lambda: scene.path == "ellipse", 5, "the ellipse path")
+    t = session.time
+    assert float(abs(scene.target_position(t) - before).max()) < 0.01     # m: continuous
+    time.sleep(2.5)
+    assert float(abs(scene.target_position(session.time) - before).max()) > 0.002   # and it moves now
+    page.select_option("#path", "static")
+    _wait(lambda: scene.path == "static", 5, "the static path")
+
+
+def test_a_page_that_stops_reading_never_holds_the_loop(server, session):
+    import contextlib
+
+    from websockets.sync.client import connect
+    with contextlib.ExitStack() as stack:
+        stalled = [stack.enter_context(connect(f"ws://127.0.0.1:{server.port}/ws/frames", open_timeout=5, max_size=None))
+                   for _ in range(2)]
+        stalled[0].recv(timeout=10)       # one frame, then never acknowledge; the other never reads at all
+        i0, _, _ = session.rows_since(1 << 62)
+        time.sleep(1.0)
+        i1, _, _ = session.rows_since(1 << 62)
+        assert i1 - i0 > 0.5 * session.cfg.loop.rate     # the loop ticked on (busy host: at least half the ticks)
+        assert session.status()["running"]

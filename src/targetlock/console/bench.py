@@ -117,7 +117,7 @@ def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bi
             out["frames_per_page"] = frames
             out["camera_fps"] = cfg.twin.camera.fps
             if screenshot:
-                tabs[0].screenshot(path=screenshot)
+                tabs[0].screenshot(path=screenshot, full_page=True)
             browser.close()
         out["serving_cpu_percent"] = (out["with_pages"]["other_threads_cpu_percent"]
                                       - out["no_page"]["other_threads_cpu_percent"])

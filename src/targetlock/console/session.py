@@ -373,7 +373,7 @@ class ConsoleSession:
             self._rows.append((tick.index, row))
             self._sig.append((tick.index, tick.time, dict(sig)))
             self._lateness.append(tick.lateness)
-            self._busy.append(tick.sent - tick.time)
+            self._busy.append(tick.sent - tick.time - tick.lateness)  # the tick's own work (s)
         rec = self._record
         if rec is not None:
             rec[1](tick)
