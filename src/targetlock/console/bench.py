@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -75,6 +77,26 @@ def _descendants(pid: int) -> list[int]:
     return out
 
 
+def _ws_clients(port: int, n: int, seconds: float) -> None:
+    """``n`` plain WebSocket viewers (frames acknowledged at once, state read), for ``seconds``; run in a
+    separate process so that only the serving side is measured in the console's process."""
+    import threading
+    from websockets.sync.client import connect
+
+    def viewer(kind: str) -> None:
+        end = time.monotonic() + seconds
+        with connect(f"ws://127.0.0.1:{port}/ws/{kind}", max_size=None, open_timeout=10) as ws:
+            while time.monotonic() < end:
+                ws.recv(timeout=5)
+                if kind == "frames":
+                    ws.send("ack")
+    threads = [threading.Thread(target=viewer, args=(k,)) for _ in range(n) for k in ("frames", "state")]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+
+
 def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bin/chromium",
                   screenshot: str | None = None, browser_nice: int = 10,
                   loop_nice: int | None = -10) -> dict:
@@ -91,6 +113,12 @@ def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bi
         session.engage("bench")
         time.sleep(2.0)
         out["no_page"] = _window(session, server, seconds)
+        viewers = subprocess.Popen([sys.executable, "-c", "import sys; from targetlock.console.bench import _ws_clients; "
+                                    f"_ws_clients({server.port}, {pages}, {seconds + 3.0})"],
+                                   preexec_fn=lambda: os.nice(browser_nice))
+        time.sleep(2.0)
+        out["ws_viewers"] = _window(session, server, seconds)
+        viewers.wait(timeout=30)
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--disable-gpu"])
             if browser_nice:   # the browsers share this machine's cores: they get less CPU than the loop (renderers inherit)

@@ -87,7 +87,8 @@ def _bench(args: argparse.Namespace) -> int:
     from .bench import bench_console
 
     r = bench_console(screenshot=args.screenshot)
-    for key, label in (("no_page", "no page"), ("with_pages", f"{r['pages']} pages")):
+    for key, label in (("no_page", "no page"), ("ws_viewers", f"{r['pages']} plain WebSocket viewers"),
+                       ("with_pages", f"{r['pages']} Chromium pages")):
         w = r[key]
         print(f"loop lateness with {label}: p50 {w['lateness_p50_ms']:.2f} ms, p99 {w['lateness_p99_ms']:.2f} ms, "
               f"max {w['lateness_max_ms']:.2f} ms over {w['ticks']} ticks; CPU (% of a core): loop thread "

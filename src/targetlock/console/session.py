@@ -374,9 +374,10 @@ class ConsoleSession:
             self._sig.append((tick.index, tick.time, dict(sig)))
             self._lateness.append(tick.lateness)
             self._busy.append(tick.sent - tick.time - tick.lateness)  # the tick's own work (s)
-        rec = self._record
-        if rec is not None:
-            rec[1](tick)
+        if self._record is not None:
+            with self._record_lock:   # held elsewhere only to swap the recorder in or out
+                if self._record is not None:
+                    self._record[1](tick)
 
     # ---------------------------------------------------------------- actions (any thread)
     def _act(self, who: str, action: str, **details) -> None:
@@ -456,12 +457,15 @@ class ConsoleSession:
 
     # ---------------------------------------------------------------- recording
     def record_start(self, who: str = "?") -> str:
+        if self._record is not None:
+            raise ConfigError(f"already recording into {self._record[0].path}")
+        run = RunFolder("console", self.cfg, root=self.runs_root)      # disk work outside the loop's lock
+        rec = _Recorder(self.rig, self.switch, run.timeseries(COLUMNS))
+        started = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
         with self._record_lock:
             if self._record is not None:
+                rec.writer.close()
                 raise ConfigError(f"already recording into {self._record[0].path}")
-            run = RunFolder("console", self.cfg, root=self.runs_root)
-            rec = _Recorder(self.rig, self.switch, run.timeseries(COLUMNS))
-            started = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
             self._record = (run, rec, self.time, len(self.rig.frame_log), started)
         self._act(who, "record-start", folder=str(run.path))
         return str(run.path)
@@ -542,7 +546,7 @@ class ConsoleSession:
     def _mocap_status(self) -> dict:
         """Connected (a sample younger than 0.5 s) and sample rate (1/s) of the rig's NatNet client."""
         client = self.rig.client
-        seq, _ = client.get_with_sequence()
+        seq, _ = client.latest.get_with_sequence()
         now = time.monotonic()
         self._mocap_seq.append((now, seq))
         (t0, s0), (t1, s1) = self._mocap_seq[0], self._mocap_seq[-1]
