@@ -10,12 +10,13 @@ windows of ``seconds`` each:
 * frame-to-screen latency in the browser (ms, p50/p95): from the moment the tracker finished a
   frame to the moment the page drew it on its canvas (both clocks are this machine's).
 
-The browsers run on the same machine and compete for its cores; they are started with a lower
-scheduling priority (``browser_nice``), as an operator's browser on the loop's host should be.
+The viewers run on the same machine, each group in a process of its own session: on Linux (autogroups)
+their CPU is then shared like another user's, as with a browser on the operator's desktop.
 """
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import subprocess
 import sys
@@ -59,24 +60,6 @@ def _window(session: ConsoleSession, server: ConsoleServer, seconds: float) -> d
             "load_average_1min": os.getloadavg()[0]}
 
 
-def _descendants(pid: int) -> list[int]:
-    """Process ids below ``pid`` (Linux /proc)."""
-    kids: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            kids.setdefault(ppid, []).append(int(d.name))
-    out, todo = [], [pid]
-    while todo:
-        for k in kids.get(todo.pop(), []):
-            out.append(k)
-            todo.append(k)
-    return out
-
-
 def _ws_clients(port: int, n: int, seconds: float) -> None:
     """``n`` plain WebSocket viewers (frames acknowledged at once, state read), for ``seconds``; run in a
     separate process so that only the serving side is measured in the console's process."""
@@ -97,56 +80,72 @@ def _ws_clients(port: int, n: int, seconds: float) -> None:
         th.join()
 
 
-def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bin/chromium",
-                  screenshot: str | None = None, browser_nice: int = 10,
-                  loop_nice: int | None = -10) -> dict:
+def _browser_pages(url: str, n: int, seconds: float, chromium: str, screenshot: str | None) -> None:
+    """``n`` headless Chromium pages on ``url``: prints "ready" once frames flow, keeps them open ``seconds``,
+    then prints their frame-to-screen latencies (JSON). Run in a process of its own session."""
     from playwright.sync_api import sync_playwright
 
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--disable-gpu"])
+        tabs = [browser.new_context(viewport={"width": 1400, "height": 900}).new_page() for _ in range(n)]
+        for page in tabs:
+            page.goto(url)
+        for page in tabs:
+            page.wait_for_function("window.tl.frames >= 5", timeout=60000)
+            page.evaluate("window.tl.latencies = []; window.tl.frames = 0")
+        print("ready", flush=True)
+        tabs[0].wait_for_timeout(1000 * seconds)
+        lat = [x for page in tabs for x in page.evaluate("window.tl.latencies")]
+        frames = [page.evaluate("window.tl.frames") for page in tabs]
+        if screenshot:
+            tabs[0].screenshot(path=screenshot, full_page=True)
+        browser.close()
+    print(json.dumps({"latencies": lat, "frames": frames}), flush=True)
+
+
+def _spawn(code: str) -> subprocess.Popen:
+    """A Python child in a session of its own: its CPU is shared like another user's (Linux autogroups),
+    not taken from the console's share, as a browser on the operator's desktop would be."""
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bin/chromium",
+                  screenshot: str | None = None,
+                  loop_nice: int | None = -10) -> dict:
     cfg = from_dict(RunConfig, {"vision": True, "realtime": True, "twin": {"scene": {"path": "linear"}}})
     session = ConsoleSession(cfg)
     server = ConsoleServer(session, port=0)
     session.start(loop_nice=loop_nice)
     server.start_in_thread()
-    out: dict = {"seconds": seconds, "pages": pages, "browser_nice": browser_nice, "loop_nice": loop_nice}
+    out: dict = {"seconds": seconds, "pages": pages, "loop_nice": loop_nice}
     try:
         time.sleep(1.0)
         session.engage("bench")
         time.sleep(2.0)
         out["no_page"] = _window(session, server, seconds)
-        viewers = subprocess.Popen([sys.executable, "-c", "import sys; from targetlock.console.bench import _ws_clients; "
-                                    f"_ws_clients({server.port}, {pages}, {seconds + 3.0})"],
-                                   preexec_fn=lambda: os.nice(browser_nice))
-        time.sleep(2.0)
+        viewers = _spawn(f"from targetlock.console.bench import _ws_clients; _ws_clients({server.port}, {pages}, "
+                         f"{seconds + 3.0})")
+        end = time.monotonic() + 30.0
+        while server.hub.watchers < pages and time.monotonic() < end:   # all viewers connected
+            time.sleep(0.05)
+        time.sleep(0.5)
         out["ws_viewers"] = _window(session, server, seconds)
-        viewers.wait(timeout=30)
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--disable-gpu"])
-            if browser_nice:   # the browsers share this machine's cores: they get less CPU than the loop (renderers inherit)
-                for pid in _descendants(os.getpid()):
-                    with contextlib.suppress(OSError):
-                        os.setpriority(os.PRIO_PROCESS, pid, browser_nice)
-            tabs = []
-            for _ in range(pages):
-                page = browser.new_context(viewport={"width": 1400, "height": 900}).new_page()
-                page.goto(server.url())
-                tabs.append(page)
-            for page in tabs:
-                page.wait_for_function("window.tl.frames >= 5", timeout=30000)
-                page.evaluate("window.tl.latencies = []")
-            hub = server.hub
-            enc0, n0 = hub.encode_seconds, hub.encoded_frames
-            out["with_pages"] = _window(session, server, seconds)
-            lat = np.concatenate([np.asarray(p.evaluate("window.tl.latencies"), float) for p in tabs])
-            frames = [p.evaluate("window.tl.frames") for p in tabs]
-            out["frame_to_screen_ms"] = {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
-                                         "samples": int(lat.size)}
-            n = max(hub.encoded_frames - n0, 1)
-            out["jpeg_encode_ms"] = 1e3 * (hub.encode_seconds - enc0) / n
-            out["frames_per_page"] = frames
-            out["camera_fps"] = cfg.twin.camera.fps
-            if screenshot:
-                tabs[0].screenshot(path=screenshot, full_page=True)
-            browser.close()
+        viewers.wait(timeout=60)
+        pages_proc = _spawn(f"from targetlock.console.bench import _browser_pages; _browser_pages({server.url()!r}, "
+                            f"{pages}, {seconds + 1.0}, {chromium!r}, {screenshot!r})")
+        if pages_proc.stdout.readline().strip() != "ready":
+            raise RuntimeError("the browser pages did not start")
+        enc0, n0 = server.hub.encode_seconds, server.hub.encoded_frames
+        out["with_pages"] = _window(session, server, seconds)
+        n = max(server.hub.encoded_frames - n0, 1)
+        out["jpeg_encode_ms"] = 1e3 * (server.hub.encode_seconds - enc0) / n
+        res = json.loads(pages_proc.stdout.readline())
+        pages_proc.wait(timeout=60)
+        lat = np.asarray(res["latencies"], float)
+        out["frame_to_screen_ms"] = {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
+                                     "samples": int(lat.size)}
+        out["frames_per_page"] = res["frames"]
+        out["camera_fps"] = cfg.twin.camera.fps
         out["serving_cpu_percent"] = (out["with_pages"]["other_threads_cpu_percent"]
                                       - out["no_page"]["other_threads_cpu_percent"])
     finally:

@@ -159,7 +159,7 @@ def encode_frame(frame: Frame, camera, quality: int = 80) -> bytes:
 @dataclass
 class _Encoded:
     seq: int = 0
-    payload: bytes = b""
+    payload: bytes | str = b""
 
 
 class FrameHub:
@@ -206,11 +206,50 @@ class FrameHub:
         return self.encoded
 
 
+class StateHub:
+    """One state message (status + new plot rows) built per period for all pages, only while someone watches;
+    a page that is slow to take it skips to the newest (its plot then has a gap)."""
+
+    def __init__(self, session: ConsoleSession, period: float) -> None:
+        self.session = session
+        self.period = period
+        self.message = _Encoded()
+        self.watchers = 0
+        self._last = 0
+        self._new = asyncio.Event()
+        self._task: asyncio.Task | None = None
+
+    async def _build_loop(self) -> None:
+        self._last, _, _ = self.session.rows_since(1 << 62)
+        while self.watchers > 0:
+            self._last, rows, sig = self.session.rows_since(self._last)
+            msg = {"status": self.session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
+            self.message = _Encoded(self.message.seq + 1, json.dumps(_json_clean(msg)))
+            self._new.set()
+            self._new = asyncio.Event()
+            await asyncio.sleep(self.period)
+        self._task = None
+
+    def watch(self) -> None:
+        self.watchers += 1
+        if self._task is None:
+            self._task = asyncio.get_running_loop().create_task(self._build_loop())
+
+    def unwatch(self) -> None:
+        self.watchers -= 1
+
+    async def newer_than(self, seq: int) -> _Encoded:
+        while self.message.seq <= seq:
+            await self._new.wait()
+        return self.message
+
+
 # ------------------------------------------------------------------------------------------ app
 def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub | None = None,
              state_period: float = 0.1) -> Guard:
     """The console's ASGI app (wrapped in the token/origin guard); ``state_period`` (s) between state messages."""
     hub = hub or FrameHub(session)
+    states = StateHub(session, state_period)
 
     async def index(request: Request):
         return FileResponse(STATIC / "index.html", headers={"cache-control": "no-store"})
@@ -261,15 +300,20 @@ def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub
 
     async def ws_state(ws: WebSocket):
         await ws.accept()
-        last = 0
+        states.watch()
         try:
+            _, rows, sig = session.rows_since(0)        # the history first, then what every page gets
+            seq = states.message.seq
+            msg = {"status": session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
+            await ws.send_text(json.dumps(_json_clean(msg)))
             while True:
-                last, rows, sig = session.rows_since(last)
-                msg = {"status": session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
-                await ws.send_text(json.dumps(_json_clean(msg)))
-                await asyncio.sleep(state_period)
+                m = await states.newer_than(seq)
+                seq = m.seq
+                await ws.send_text(m.payload)
         except (WebSocketDisconnect, RuntimeError):
             pass
+        finally:
+            states.unwatch()
 
     async def ws_frames(ws: WebSocket):
         await ws.accept()

@@ -254,6 +254,24 @@ class MovableScene(Scene):
 
 
 # ------------------------------------------------------------------------------------------ session
+def _raise_priority(nice: int) -> None:
+    """Scheduling priority ``nice`` for the calling thread and, on Linux with autogroups, for this process's
+    group against other sessions' work (CPU is shared per session first). Needs root or CAP_SYS_NICE;
+    without, a warning and the loop runs at normal priority."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)   # this thread only (Linux)
+    except (OSError, AttributeError) as exc:
+        log.warning("cannot raise the loop thread's priority to nice %d: %s", nice, exc)
+        return
+    group = "/proc/self/autogroup"
+    if os.path.exists(group):
+        try:
+            with open(group, "w") as fh:
+                fh.write(str(nice))
+        except OSError as exc:
+            log.warning("cannot raise the console's scheduling group to nice %d: %s", nice, exc)
+
+
 class _Stop(Exception):
     """Raised from the loop's tick callback to end the console's loop."""
 
@@ -339,10 +357,7 @@ class ConsoleSession:
 
     def _run(self, loop_nice: int | None) -> None:
         if loop_nice is not None:
-            try:
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), loop_nice)  # this thread only (Linux)
-            except (OSError, AttributeError) as exc:
-                log.warning("cannot raise the loop thread's priority to nice %d: %s", loop_nice, exc)
+            _raise_priority(loop_nice)
         try:
             self.loop.run(7 * 86400.0, self._on_tick)
         except _Stop:
