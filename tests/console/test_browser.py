@@ -241,6 +241,28 @@ def test_twin_target_path_changes_without_a_jump(page, session):
     _wait(lambda: scene.path == "static", 5, "the static path")
 
 
+def test_shift_drag_moves_the_twin_target_by_the_dragged_pixels(page, session):
+    scene = session.rig.scene
+    base = scene.base.copy()
+    box = page.locator("#view").bounding_box()
+    w = page.evaluate("document.getElementById('view').width")
+    k = box["width"] / w                                   # CSS px per image px
+    x0, y0 = box["x"] + 200 * k, box["y"] + 200 * k
+    page.keyboard.down("Shift")
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    page.mouse.move(x0 + 20 * k, y0 + 10 * k, steps=5)
+    page.mouse.move(x0 + 40 * k, y0 - 30 * k, steps=5)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    _wait(lambda: session.actions[-1]["action"] == "target-move", 5, "the target-move action")
+    a = session.actions[-1]
+    assert a["dx"] == pytest.approx(40, abs=1.5) and a["dy"] == pytest.approx(-30, abs=1.5)
+    cam, d = session.cfg.twin.camera, session.cfg.twin.scene.distance
+    moved = scene.base - base
+    assert moved[0] == pytest.approx(a["dx"] * d / cam.fx, rel=1e-6) and moved[1] == pytest.approx(a["dy"] * d / cam.fy, rel=1e-6)
+
+
 def test_a_page_that_stops_reading_never_holds_the_loop(server, session):
     import contextlib
 
