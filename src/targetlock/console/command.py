@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 
 from ..cli import command
 from ..controllers.base import CONTROLLERS

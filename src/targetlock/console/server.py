@@ -268,31 +268,25 @@ def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub
         except ValueError:
             return JSONResponse({"error": "request body is not JSON"}, status_code=400)
         w = who(request)
+        actions = {
+            "select": lambda: session.select(float(body["x"]), float(body["y"]),
+                                             None if body.get("window") is None else int(body["window"]), who=w),
+            "engage": lambda: session.engage(who=w),
+            "release": lambda: session.release(who=w),
+            "stop": lambda: session.stop(who=w),
+            "enable": lambda: session.enable(who=w),
+            "tune": lambda: {"controller": session.tune(dict(body), who=w)},
+            "record-start": lambda: {"folder": session.record_start(who=w)},
+            "record-stop": lambda: {"summary": session.record_stop(who=w)},
+            "target-path": lambda: session.set_target_path(str(body["path"]), who=w),
+            "target-move": lambda: session.nudge_target(float(body["dx"]), float(body["dy"]), who=w),
+        }
+        if name not in actions:
+            return JSONResponse({"error": f"unknown action {name!r}"}, status_code=404)
+        if not isinstance(body, dict):
+            return JSONResponse({"error": "request body must be a JSON object"}, status_code=400)
         try:
-            if name == "select":
-                window = body.get("window")
-                session.select(float(body["x"]), float(body["y"]), None if window is None else int(window), who=w)
-                out = {}
-            elif name == "engage":
-                session.engage(who=w); out = {}
-            elif name == "release":
-                session.release(who=w); out = {}
-            elif name == "stop":
-                session.stop(who=w); out = {}
-            elif name == "enable":
-                session.enable(who=w); out = {}
-            elif name == "tune":
-                out = {"controller": session.tune(dict(body), who=w)}
-            elif name == "record-start":
-                out = {"folder": session.record_start(who=w)}
-            elif name == "record-stop":
-                out = {"summary": session.record_stop(who=w)}
-            elif name == "target-path":
-                session.set_target_path(str(body["path"]), who=w); out = {}
-            elif name == "target-move":
-                session.nudge_target(float(body["dx"]), float(body["dy"]), who=w); out = {}
-            else:
-                return JSONResponse({"error": f"unknown action {name!r}"}, status_code=404)
+            out = await run_in_threadpool(actions[name]) or {}   # recording plots: off the event loop
         except (ConfigError, KeyError, TypeError, ValueError) as exc:
             msg = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
             return JSONResponse({"error": msg}, status_code=400)

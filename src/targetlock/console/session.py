@@ -254,22 +254,38 @@ class MovableScene(Scene):
 
 
 # ------------------------------------------------------------------------------------------ session
-def _raise_priority(nice: int) -> None:
+AUTOGROUP = "/proc/self/autogroup"
+
+
+def _raise_priority(nice: int) -> str | None:
     """Scheduling priority ``nice`` for the calling thread and, on Linux with autogroups, for this process's
-    group against other sessions' work (CPU is shared per session first). Needs root or CAP_SYS_NICE;
-    without, a warning and the loop runs at normal priority."""
+    scheduling group against other sessions' work (CPU is shared per session first). Needs root or
+    CAP_SYS_NICE; without, a warning and the loop runs at normal priority. Returns the group's previous
+    nice (to restore with :func:`_restore_group`), or None when it was not changed."""
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)   # this thread only (Linux)
     except (OSError, AttributeError) as exc:
         log.warning("cannot raise the loop thread's priority to nice %d: %s", nice, exc)
-        return
-    group = "/proc/self/autogroup"
-    if os.path.exists(group):
+        return None
+    try:
+        with open(AUTOGROUP) as fh:
+            before = fh.read().split()[-1]
+        with open(AUTOGROUP, "w") as fh:
+            fh.write(str(nice))
+        return before
+    except (OSError, IndexError) as exc:
+        log.warning("cannot raise the console's scheduling group to nice %d: %s", nice, exc)
+        return None
+
+
+def _restore_group(before: str | None) -> None:
+    """The group is the whole login session's (the shell too): give it back its nice when the console ends."""
+    if before is not None:
         try:
-            with open(group, "w") as fh:
-                fh.write(str(nice))
+            with open(AUTOGROUP, "w") as fh:
+                fh.write(before)
         except OSError as exc:
-            log.warning("cannot raise the console's scheduling group to nice %d: %s", nice, exc)
+            log.warning("cannot restore the scheduling group's nice %s: %s", before, exc)
 
 
 class _Stop(Exception):
@@ -338,6 +354,8 @@ class ConsoleSession:
         self._record_lock = threading.Lock()
         self.last_record: dict | None = None
         self._mocap_seq: collections.deque = collections.deque(maxlen=20)
+        self._group_nice: str | None = None
+        self._finishing: str | None = None
 
     def _warm_up(self, ctrl: Controller) -> None:
         """Step a new controller twice off-line: compiling its model (seconds) must not stall a tick.
@@ -357,7 +375,7 @@ class ConsoleSession:
 
     def _run(self, loop_nice: int | None) -> None:
         if loop_nice is not None:
-            _raise_priority(loop_nice)
+            self._group_nice = _raise_priority(loop_nice)
         try:
             self.loop.run(7 * 86400.0, self._on_tick)
         except _Stop:
@@ -491,6 +509,7 @@ class ConsoleSession:
                 raise ConfigError("not recording")
             run, rec, t0, first_frame, started = self._record
             self._record = None
+            self._finishing = str(run.path)     # shown as recording until the folder is complete
         rec.writer.close()
         data = np.asarray(rec.rows, dtype=float).reshape(-1, len(COLUMNS))
         summary = metrics(data, self.rig.frame_log[first_frame:], t0) if len(data) else {}
@@ -502,6 +521,7 @@ class ConsoleSession:
         summary["run_folder"] = str(run.path)
         run.write_summary(summary)
         self.last_record = summary
+        self._finishing = None
         self._act(who, "record-stop", folder=str(run.path))
         return summary
 
@@ -554,7 +574,7 @@ class ConsoleSession:
             "controllers": list(CONTROLLERS),
             "target_path": self.rig.scene.path if self.twin else None,
             "target_paths": list(TARGET_PATHS) if self.twin else [],
-            "recording": None if rec is None else str(rec[0].path),
+            "recording": self._finishing if rec is None else str(rec[0].path),
             "actions": list(self.actions)[-8:],
         }
 
@@ -578,6 +598,7 @@ class ConsoleSession:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        _restore_group(self._group_nice)
         if self._record is not None:
             self.record_stop("shutdown")
         try:
