@@ -157,91 +157,91 @@ def encode_frame(frame: Frame, camera, quality: int = 80) -> bytes:
 
 
 @dataclass
-class _Encoded:
+class _Message:
     seq: int = 0
     payload: bytes | str = b""
 
 
-class FrameHub:
-    """One encoder for all pages: the newest frame, encoded once, only while someone watches."""
+class _NewestHub:
+    """A message produced once for all pages, only while at least one watches; a page that is slow to
+    take one skips to the newest. Subclasses produce in :meth:`_produce` and hand over with :meth:`_publish`."""
 
-    def __init__(self, session: ConsoleSession, quality: int = 80, poll: float = 0.005) -> None:
-        self.session = session
-        self.quality = quality
-        self.poll = poll
-        self.encoded = _Encoded()
+    def __init__(self) -> None:
+        self.current = _Message()
         self.watchers = 0
         self._new = asyncio.Event()
         self._task: asyncio.Task | None = None
-        self.encode_seconds = 0.0
-        self.encoded_frames = 0
 
-    async def _encode_loop(self) -> None:
-        tap = self.session.tap
-        cam = self.session.cfg.twin.camera
-        while self.watchers > 0:
-            frame = tap.newest()
-            if frame is not None and frame.seq > self.encoded.seq:
-                t0 = asyncio.get_running_loop().time()
-                payload = await run_in_threadpool(encode_frame, frame, cam, self.quality)
-                self.encode_seconds += asyncio.get_running_loop().time() - t0
-                self.encoded_frames += 1
-                self.encoded = _Encoded(frame.seq, payload)
-                self._new.set()
-                self._new = asyncio.Event()
-            await asyncio.sleep(self.poll)
-        self._task = None
+    async def _produce(self) -> None:
+        raise NotImplementedError
 
-    def watch(self) -> None:
-        self.watchers += 1
-        if self._task is None and self.session.tap is not None:
-            self._task = asyncio.get_running_loop().create_task(self._encode_loop())
-
-    def unwatch(self) -> None:
-        self.watchers -= 1
-
-    async def newer_than(self, seq: int) -> _Encoded:
-        while self.encoded.seq <= seq:
-            await self._new.wait()
-        return self.encoded
-
-
-class StateHub:
-    """One state message (status + new plot rows) built per period for all pages, only while someone watches;
-    a page that is slow to take it skips to the newest (its plot then has a gap)."""
-
-    def __init__(self, session: ConsoleSession, period: float) -> None:
-        self.session = session
-        self.period = period
-        self.message = _Encoded()
-        self.watchers = 0
-        self._last = 0
+    def _publish(self, seq: int, payload: bytes | str) -> None:
+        self.current = _Message(seq, payload)
+        self._new.set()
         self._new = asyncio.Event()
-        self._task: asyncio.Task | None = None
 
-    async def _build_loop(self) -> None:
-        self._last, _, _ = self.session.rows_since(1 << 62)
-        while self.watchers > 0:
-            self._last, rows, sig = self.session.rows_since(self._last)
-            msg = {"status": self.session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
-            self.message = _Encoded(self.message.seq + 1, json.dumps(_json_clean(msg)))
-            self._new.set()
-            self._new = asyncio.Event()
-            await asyncio.sleep(self.period)
-        self._task = None
+    async def _run(self) -> None:
+        try:
+            await self._produce()
+        finally:
+            self._task = None
 
     def watch(self) -> None:
         self.watchers += 1
         if self._task is None:
-            self._task = asyncio.get_running_loop().create_task(self._build_loop())
+            self._task = asyncio.get_running_loop().create_task(self._run())
 
     def unwatch(self) -> None:
         self.watchers -= 1
 
-    async def newer_than(self, seq: int) -> _Encoded:
-        while self.message.seq <= seq:
+    async def newer_than(self, seq: int) -> _Message:
+        while self.current.seq <= seq:
             await self._new.wait()
-        return self.message
+        return self.current
+
+
+class FrameHub(_NewestHub):
+    """The newest tracked frame as a binary message (:func:`encode_frame`), JPEG-encoded in a worker thread."""
+
+    def __init__(self, session: ConsoleSession, quality: int = 80, poll: float = 0.005) -> None:
+        super().__init__()
+        self.session = session
+        self.quality = quality
+        self.poll = poll             # s between looks at the tracker's slot
+        self.encode_seconds = 0.0
+        self.encoded_frames = 0
+
+    async def _produce(self) -> None:
+        tap = self.session.tap
+        if tap is None:
+            return                   # a rig without a camera: no frames
+        cam = self.session.cfg.twin.camera
+        while self.watchers > 0:
+            frame = tap.newest()
+            if frame is not None and frame.seq > self.current.seq:
+                t0 = asyncio.get_running_loop().time()
+                payload = await run_in_threadpool(encode_frame, frame, cam, self.quality)
+                self.encode_seconds += asyncio.get_running_loop().time() - t0
+                self.encoded_frames += 1
+                self._publish(frame.seq, payload)
+            await asyncio.sleep(self.poll)
+
+
+class StateHub(_NewestHub):
+    """Status and the plot rows since the previous message, every ``period`` s (a slow page's plot has a gap)."""
+
+    def __init__(self, session: ConsoleSession, period: float) -> None:
+        super().__init__()
+        self.session = session
+        self.period = period
+
+    async def _produce(self) -> None:
+        last, _, _ = self.session.rows_since(1 << 62)
+        while self.watchers > 0:
+            last, rows, sig = self.session.rows_since(last)
+            msg = {"status": self.session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
+            self._publish(self.current.seq + 1, json.dumps(_json_clean(msg)))
+            await asyncio.sleep(self.period)
 
 
 # ------------------------------------------------------------------------------------------ app
@@ -297,7 +297,7 @@ def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub
         states.watch()
         try:
             _, rows, sig = session.rows_since(0)        # the history first, then what every page gets
-            seq = states.message.seq
+            seq = states.current.seq
             msg = {"status": session.status(), "columns": PLOT_COLUMNS, "rows": rows, "signals": sig}
             await ws.send_text(json.dumps(_json_clean(msg)))
             while True:
