@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import subprocess
 import sys
 import venv
@@ -53,6 +54,27 @@ def setup() -> Path:
     return _python()
 
 
+# ------------------------------------------------------------------------------ browser for the console tests
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+def ensure_browser() -> None:
+    """The console's tests drive Debian's ``chromium`` (headless, through Playwright): install it when
+    missing and we are root on Debian, else stop with a message naming the package."""
+    if CHROMIUM.exists():
+        return
+    debian = Path("/etc/debian_version").exists() and shutil.which("apt-get") is not None
+    if debian and hasattr(os, "geteuid") and os.geteuid() == 0:
+        print("[dev] installing Debian's chromium for the console's browser tests", flush=True)
+        env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+        subprocess.run(["apt-get", "update", "-q"], check=True, env=env)
+        subprocess.run(["apt-get", "install", "-y", "-q", "chromium"], check=True, env=env)
+        if CHROMIUM.exists():
+            return
+    sys.exit(f"[dev] the console tests need a Chromium browser at {CHROMIUM}: install the Debian package "
+             f"'chromium' (apt-get install chromium, as root)")
+
+
 def main(argv: list[str]) -> int:
     jobs = {
         "demo": ["-m", "targetlock", "run"],
@@ -62,6 +84,8 @@ def main(argv: list[str]) -> int:
         print(__doc__)
         return 2
     py = setup()
+    if argv[0] == "test":
+        ensure_browser()
     cmd = [str(py), *jobs[argv[0]], *argv[1:]]
     print("[dev] " + " ".join(cmd[1:]), flush=True)
     return subprocess.run(cmd, cwd=ROOT).returncode

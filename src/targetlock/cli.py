@@ -248,6 +248,7 @@ def _bench(args: argparse.Namespace) -> int:
 def _load_extra_commands() -> None:
     """Commands of the closed loop, vision and hardware live beside their code."""
     from . import commands  # noqa: F401  (registers its commands on import)
+    from .console import command as _console  # noqa: F401  (targetlock console)
 
 
 class _StderrHandler(logging.StreamHandler):

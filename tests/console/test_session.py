@@ -1,0 +1,62 @@
+"""Console pieces without a browser: engage/release and live controller replacement, the movable target."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from targetlock.config import ConfigError
+from targetlock.console.session import LockSwitch, MovableScene
+from targetlock.controllers import ControllerConfig, make_controller
+from targetlock.model.camera import CameraParams
+from targetlock.model.scene import SceneParams
+from targetlock.rig.base import Observation
+
+
+def _pi(i_gain: float = 300.0):
+    cam = CameraParams()
+    return make_controller(ControllerConfig(kind="pi", i_gain=i_gain), rad_per_tick=1e-4, lower=np.full(2, -3.0),
+                           upper=np.full(2, 3.0), control_dt=0.02, camera=cam, tip_length=0.04, n_elements=1,
+                           latency=0.0)
+
+
+def _obs(t: float, off=(40.0, -20.0)) -> Observation:
+    return Observation(capture_time=t, offset=np.array(off), valid=True, arrival_time=t)
+
+
+def test_released_holds_engaged_moves_and_a_new_controller_starts_at_the_setpoint():
+    sw = LockSwitch(_pi())
+    motor = np.array([0.1, -0.2])
+    sw.reset(motor, 0.0)
+    t = 0.0
+    for _ in range(20):                       # released: the handle holds still whatever the error
+        t += 0.02
+        assert np.array_equal(sw.step(_obs(t), motor, t), motor)
+    sw.engage()
+    for _ in range(20):
+        t += 0.02
+        sp = sw.step(_obs(t), motor, t)
+    assert sw.locked and np.abs(sp - motor).max() > 1e-3          # engaged: the integrator moves the handle
+    before = sp.copy()
+    sw.replace(_pi(i_gain=10.0))
+    t += 0.02
+    after = sw.step(_obs(t), motor, t)
+    assert sw.inner.cfg.i_gain == 10.0
+    assert np.abs(after - before).max() < 10.0 * 1e-4 * 40 * 0.02 + 1e-9   # one small I step, no jump
+    sw.release()
+    t += 0.02
+    held = sw.step(_obs(t), motor, t)
+    t += 0.02
+    assert np.array_equal(sw.step(_obs(t), motor, t), held) and not sw.locked
+
+
+def test_target_path_switch_is_continuous_and_nudge_moves_by_pixels():
+    cam = CameraParams()
+    scene = MovableScene(SceneParams(path="linear", start_delay=0.0), cam, np.eye(4))
+    p = scene.target_position(3.0)
+    scene.set_path("static", 3.0)
+    assert np.allclose(scene.target_position(3.0), p) and np.allclose(scene.target_position(9.0), p)
+    scene.nudge(30.0, 0.0, 9.0)
+    d = SceneParams().distance
+    assert np.allclose(scene.target_position(9.0) - p, [30.0 * d / cam.fx, 0.0, 0.0])
+    with pytest.raises(ConfigError, match="target path = 'spiral' is not allowed"):
+        scene.set_path("spiral", 9.0)
