@@ -461,7 +461,7 @@ def _export_options(p: argparse.ArgumentParser) -> None:
 
 @command("export", "write run.mcap (Foxglove) for a run folder recorded before MCAP logging")(_export_options)
 def _export(args: argparse.Namespace) -> int:
-    from .recording.run_mcap import export_run_folder
+    from .experiments.export import export_run_folder
     out = export_run_folder(args.run_folder, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1024:.0f} kB): open it in Foxglove (docs/research.md)")
     return 0

@@ -29,8 +29,21 @@ def _messages(path, topic):
 def exported(tmp_path_factory):
     run = tmp_path_factory.mktemp("run") / "r"
     assert main(["run", "--seconds", "4", "--path", "ellipse", "--out", str(run)]) == 0
+    live = run / "live.mcap"
+    (run / "run.mcap").rename(live)          # as a run folder from before MCAP recording
     assert main(["export", str(run)]) == 0
     return run
+
+
+def test_a_run_writes_its_rows_to_run_mcap_as_it_goes(exported):
+    csv = np.loadtxt(exported / "timeseries.csv", delimiter=",", skiprows=1)
+    live = _messages(exported / "live.mcap", "/timeseries")
+    exp = _messages(exported / "run.mcap", "/timeseries")
+    assert len(live) == len(csv) == len(exp)
+    for (t_live, m_live), (t_exp, m_exp) in zip(live, exp):
+        assert t_live == t_exp
+        for c, v in m_live.items():       # the CSV (and so the export) keeps 9 significant digits
+            assert (v is None and m_exp[c] is None) or v == pytest.approx(m_exp[c], rel=1e-8, abs=1e-12)
 
 
 def test_export_has_foxglove_schemas_and_one_message_per_row(exported):

@@ -5,6 +5,7 @@ Layout of a run folder::
     config.toml        the full resolved configuration (re-run with --config config.toml)
     run.log            every log message of the run, with time and level
     timeseries.csv     one row per sample, written as the run goes (a crash keeps what was recorded)
+    run.mcap           the same rows (and, for target-lock runs, poses, frames, logs) for Foxglove
     summary.json       the figures the command printed
     *.png              plots
     inputs/            copies of the input files the config names (e.g. a waypoint CSV); config.toml
@@ -18,7 +19,6 @@ import logging
 import math
 import os
 import shutil
-import time
 import weakref
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,6 +28,7 @@ import numpy as np
 
 from ..config import replace_path, save_toml
 from ..errors import OutputError
+from ..recording import McapLog, TimeSeriesWriter
 
 __all__ = ["RunFolder", "TimeSeriesWriter", "check_writable", "input_files"]
 
@@ -66,53 +67,6 @@ def _detach(handler: logging.Handler) -> None:
     handler.close()
 
 
-class TimeSeriesWriter:
-    """CSV writer that flushes at least every ``flush_seconds`` of wall time, so data survive a crash."""
-
-    def __init__(self, path: Path, columns: Sequence[str], *, flush_seconds: float = 0.5) -> None:
-        self.path = Path(path)
-        self.columns = list(columns)
-        self._fh = self.path.open("w", buffering=1 << 16)
-        self._fh.write(",".join(self.columns) + "\n")
-        self._fh.flush()
-        self._rows: list[Sequence[float]] = []
-        self._flush_seconds = flush_seconds
-        self._last_flush = time.monotonic()
-        self.n_rows = 0
-
-    def write(self, row: Sequence[float]) -> None:
-        if len(row) != len(self.columns):
-            raise ValueError(f"row has {len(row)} values for {len(self.columns)} columns")
-        self._rows.append(row)
-        self.n_rows += 1
-        if len(self._rows) >= 4096 or time.monotonic() - self._last_flush > self._flush_seconds:
-            self.flush()
-
-    def write_many(self, rows: np.ndarray) -> None:
-        for r in np.asarray(rows):
-            self._rows.append(r)
-        self.n_rows += len(rows)
-        self.flush()
-
-    def flush(self) -> None:
-        if self._rows:
-            np.savetxt(self._fh, np.asarray(self._rows, dtype=float), delimiter=",", fmt="%.9g")
-            self._rows.clear()
-        self._fh.flush()
-        self._last_flush = time.monotonic()
-
-    def close(self) -> None:
-        if not self._fh.closed:
-            self.flush()
-            self._fh.close()
-
-    def __enter__(self) -> "TimeSeriesWriter":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-
 class RunFolder:
     """A folder for one experiment run; created at construction, config written immediately.
 
@@ -140,6 +94,7 @@ class RunFolder:
         self.kind = kind
         self.config = config
         save_toml(config, self.path / "config.toml")
+        self._mcap: McapLog | None = None
         self._log_handler = logging.FileHandler(self.path / "run.log", encoding="utf-8")
         self._log_handler.setFormatter(logging.Formatter(LOG_FORMAT))
         logging.getLogger().addHandler(self._log_handler)
@@ -172,8 +127,18 @@ class RunFolder:
             raise OutputError(f"--out {p}: cannot create the run folder ({exc.strerror or exc}); choose a "
                               "place you may write to") from None
 
+    @property
+    def mcap(self) -> McapLog:
+        """``run.mcap`` of this run (created on first use; see :mod:`targetlock.recording`)."""
+        if self._mcap is None:
+            self._mcap = McapLog(self.file("run.mcap"))
+            self._mcap.metadata("config", {"config.toml": self.file("config.toml").read_text(encoding="utf-8")})
+        return self._mcap
+
     def close(self) -> None:
-        """Stop writing log messages to ``run.log``."""
+        """Finish ``run.mcap`` and stop writing log messages to ``run.log``."""
+        if self._mcap is not None:
+            self._mcap.close()
         self._finalizer()
 
     def __enter__(self) -> "RunFolder":
@@ -191,7 +156,8 @@ class RunFolder:
         return self.path / name
 
     def timeseries(self, columns: Sequence[str], name: str = "timeseries.csv") -> TimeSeriesWriter:
-        return TimeSeriesWriter(self.file(name), columns)
+        """A CSV ``name`` written as the run goes, mirrored into ``run.mcap`` on topic ``/<stem>``."""
+        return TimeSeriesWriter(self.file(name), columns, mcap=self.mcap, topic="/" + Path(name).stem)
 
     def write_summary(self, summary: dict) -> Path:
         def clean(v: Any) -> Any:
