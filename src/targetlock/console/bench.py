@@ -45,7 +45,7 @@ def _thread_cpu() -> dict[int, float]:
 
 
 def _window(session: ConsoleSession, server: ConsoleServer, seconds: float) -> dict:
-    loop_tid, http_tid = session._thread.native_id, server._thread.native_id
+    loop_tid, http_tid = session._thread.native_id or 0, server._thread.native_id or 0
     threads0, cpu0, wall0 = _thread_cpu(), time.process_time(), time.perf_counter()
     time.sleep(seconds)
     threads1, cpu, wall = _thread_cpu(), time.process_time() - cpu0, time.perf_counter() - wall0
@@ -103,7 +103,7 @@ def _browser_pages(url: str, n: int, seconds: float, chromium: str, screenshot: 
     print(json.dumps({"latencies": lat, "frames": frames}), flush=True)
 
 
-def _spawn(code: str) -> subprocess.Popen:
+def _spawn(code: str) -> subprocess.Popen[str]:
     """A Python child in a session of its own: its CPU is shared like another user's (Linux autogroups),
     not taken from the console's share, as a browser on the operator's desktop would be."""
     return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)

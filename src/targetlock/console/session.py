@@ -54,7 +54,7 @@ TARGET_PATHS = ("static", "linear", "ellipse")
 """Paths the target can be switched to on the twin."""
 
 TUNABLE = ("kind", "i_gain", "p_gain", "hc_width", "hc2_slope", "hc2_offset_deg", "hc_threshold_px", "tip_gain",
-           "ik_depth", "ik_damping", "target_prediction", "max_rate")
+           "ik_damping", "target_prediction", "max_rate")
 """Controller settings the page may change while running (names of :class:`ControllerConfig` fields)."""
 
 PLOT_COLUMNS = ("t", "err_x", "err_y", "err", "true_err", "motor_x_deg", "motor_y_deg", "tip_x_deg", "tip_y_deg")
@@ -70,7 +70,7 @@ class LockSwitch(Controller):
 
     def __init__(self, inner: Controller) -> None:
         super().__init__(inner.cfg, rad_per_tick=inner.rad_per_tick, lower=inner.lower, upper=inner.upper,
-                         control_dt=inner.control_dt)
+                         control_dt=inner.control_dt, knowledge=inner.knowledge)
         self.inner = inner
         self.locked = False
         self._want_locked = False
@@ -351,7 +351,7 @@ class ConsoleSession:
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.actions: collections.deque = collections.deque(maxlen=200)
-        self._record: tuple[RunFolder, _Recorder, float, int] | None = None
+        self._record: tuple[RunFolder, _Recorder, float, int, str] | None = None
         self._record_lock = threading.Lock()
         self.last_record: dict | None = None
         self._mocap_seq: collections.deque = collections.deque(maxlen=20)

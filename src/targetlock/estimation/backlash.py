@@ -51,8 +51,8 @@ class BacklashEstimator:
                 seen = float(np.dot(offset - self._turn_image[a], col) / max(np.linalg.norm(col), 1e-9))
                 travel = motor[a] - self._turn_motor[a]
                 if abs(seen) > self.threshold_px and np.sign(seen) == np.sign(travel):
-                    width = float(np.clip(abs(travel) - self.threshold_px / max(np.linalg.norm(col), 1e-9),
-                                          0.0, self.max_width))
+                    gain = max(float(np.linalg.norm(col)), 1e-9)     # px per rad along this axis
+                    width = float(np.clip(abs(travel) - self.threshold_px / gain, 0.0, self.max_width))
                     self.samples.append((float(np.abs(motor).sum()), width))
                     self._dir[a] = np.sign(travel)
                     self._extreme[a] = motor[a]

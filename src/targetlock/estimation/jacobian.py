@@ -95,7 +95,7 @@ class JacobianEstimator:
         if rn > limit:
             r = r * (limit / rn)
         self.scale = min(max(0.95 * self.scale + 0.05 * min(rn, limit), 1.0), 200.0)
-        excited = np.linalg.norm(dm) >= self.min_motion
+        excited = bool(np.linalg.norm(dm) >= self.min_motion)
         if np.linalg.norm(dx - self.velocity * dt) < self.min_image_motion:
             # The image did not follow the motor: the tip sticks (friction, backlash), it does not say
             # J is small. Only the target's velocity learns from this pair (selection biases J up: safe).

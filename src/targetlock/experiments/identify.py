@@ -311,12 +311,9 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
                           rng.uniform(-0.002 / radius, 0.002 / radius, (n_starts, 6)))
     cands[0] = z0
     costs = np.concatenate([np.sum(residuals_of(cands[i:i + 8]) ** 2, axis=1) for i in range(0, n_starts, 8)])
-    best = None
-    for i in np.argsort(costs)[:3]:
-        sol = least_squares(fun, cands[i], jac=jac, x_scale="jac", xtol=1e-8, ftol=1e-10, max_nfev=60)
-        if best is None or sol.cost < best.cost:
-            best = sol
-    z = best.x
+    sols = [least_squares(fun, cands[i], jac=jac, x_scale="jac", xtol=1e-8, ftol=1e-10, max_nfev=60)
+            for i in np.argsort(costs)[:3]]
+    z = min(sols, key=lambda sol: sol.cost).x
     res = fun(z)
     j = jac(z)
     dof = max(1, res.size - z.size)

@@ -138,7 +138,7 @@ def expand(spec: SweepSpec) -> list[Case]:
     draws = [{k: _draw(rng, k, d) for k, d in dists.items()} for _ in range(n_draws)]
     grid_names = list(spec.grid)
     points = [dict(zip(grid_names, combo)) for combo in itertools.product(*(spec.grid[k] for k in grid_names))]
-    cases = []
+    cases: list[Case] = []
     for d, drawn in enumerate(draws):
         case_seed = (spec.seed * 1_000_003 + d) % 2**63
         for point in points:
