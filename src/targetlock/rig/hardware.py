@@ -27,7 +27,7 @@ from ..interfaces.rigfile import HardwareRigConfig
 from ..interfaces.safety import SafeDrives
 from ..model.camera import CameraParams, LatencyLine, project, world_to_camera
 from ..model.kinematics import bending_angles_from_poses
-from .base import Observation, ObservationSource, Rig
+from .base import FrameLog, Observation, ObservationSource, Rig
 
 __all__ = ["HardwareRig", "MocapObservations", "pose_of"]
 
@@ -50,7 +50,7 @@ class MocapObservations(ObservationSource):
         self.line = LatencyLine(camera.latency)
         self.clock_offset = clock_offset      # monotonic time of loop time zero
         self.next_frame = 0
-        self.frame_log: list[tuple[float, bool]] = []
+        self.frame_log = FrameLog()
         self._cache: tuple[object, tuple[np.ndarray, np.ndarray, float] | None] = (None, None)
 
     def measure(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -93,7 +93,7 @@ class MocapObservations(ObservationSource):
             t = self.next_frame * period
             self.line.push(t, Observation(capture_time=t, offset=offset, valid=valid, frame_index=self.next_frame,
                                           truth=offset, arrival_time=t + self.camera.latency))
-            self.frame_log.append((t, valid))
+            self.frame_log.record(t, valid)
             self.next_frame += 1
         return [item for _, item in self.line.pop_ready(now)]
 
@@ -133,8 +133,8 @@ class HardwareRig(Rig):
         return time.monotonic() - self._t0
 
     @property
-    def frame_log(self) -> list[tuple[float, bool]]:
-        return getattr(self.observations, "frame_log", [])
+    def frame_log(self) -> FrameLog:
+        return self.observations.frame_log
 
     def advance(self, until: float) -> None:
         pass  # the wall clock moves the hardware; the loop sleeps until each deadline
@@ -169,6 +169,4 @@ class HardwareRig(Rig):
             self.drives.close()
         finally:
             self.client.stop()
-            closer = getattr(self.observations, "close", None)
-            if closer is not None:
-                closer()
+            self.observations.close()
