@@ -110,7 +110,7 @@ def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: floa
     from .experiments.target_lock import RunConfig, build_controller, build_rig
     from .loop.clock import WallClock
     from .loop.runner import ControlLoop
-    from .rig.base import FrameLog, HandoffSource, Observation, Rig
+    from .rig.base import HandoffSource, Observation, Rig
 
     class PacedSource(HandoffSource):
         def __init__(self) -> None:
@@ -118,6 +118,10 @@ def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: floa
             self.t0 = time.monotonic()
             self.stop = threading.Event()
             self.thread = threading.Thread(target=self._run, daemon=True)
+
+        def start(self) -> None:
+            """Frames from loop time zero on (all arrival times on the loop's clock)."""
+            self.t0 = time.monotonic()
             self.thread.start()
 
         def _run(self) -> None:
@@ -130,16 +134,16 @@ def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: floa
 
         def close(self) -> None:
             self.stop.set()
-            self.thread.join()
+            if self.thread.is_alive():
+                self.thread.join()
 
     class LiveRig(Rig):
         def __init__(self, sim) -> None:
             self.sim, self.drives, self.camera = sim, sim.drives, sim.camera
             self.observations = PacedSource()
-            self.frame_log = FrameLog()
 
         def start_clock(self) -> None:
-            self.observations.t0 = time.monotonic()
+            self.observations.start()
 
         def advance(self, until: float) -> None:
             self.sim.advance(until)

@@ -109,3 +109,20 @@ def test_wild_observations_neither_freeze_nor_nan_any_controller(kind):
     np.testing.assert_array_equal(hit, clean)                 # the controller never saw them
     assert np.abs(hit[-1] - hit[50]).max() > 1e-3              # it kept steering after the first one
     assert g.n_rejected == len(BAD)
+
+
+def test_a_late_tick_judges_capture_times_against_the_clock_not_the_tick_time():
+    from targetlock.loop.clock import SimClock
+
+    class LateClock(SimClock):
+        def now(self):
+            return self._t + 0.2          # every tick runs 0.2 s after its deadline (a loaded host)
+
+    rig = build_rig(RunConfig())
+    fresh = {1.0: lambda now: obs(now + 0.15)}   # captured after the tick's nominal time, before now
+    rig.observations = Injecting(rig.observations, fresh)
+    loop = ControlLoop(rig, build_controller(RunConfig(), rig), rate=50, clock=LateClock())
+    seen = []
+    loop.run(1.5, lambda tick: tick.observation is not None and seen.append(tick.observation.capture_time))
+    assert "time_in_future" not in loop.gate.rejected
+    assert max(seen) == pytest.approx(1.15)               # the fresh one reached the controller

@@ -9,7 +9,7 @@ from targetlock.experiments.target_lock import RunConfig, build_controller, buil
 from targetlock.loop.clock import SimClock, WallClock
 from targetlock.loop.runner import ControlLoop
 from targetlock.model.twin import twin_config
-from targetlock.rig.base import FrameLog, HandoffSource, Observation, Rig
+from targetlock.rig.base import HandoffSource, Observation, Rig
 
 
 def rig_and_ctrl(latency=0.4, **scene):
@@ -128,7 +128,6 @@ class PacedSource(HandoffSource):
     def __init__(self, fps):
         super().__init__()
         self.fps, self.t0, self.stop = fps, time.monotonic(), threading.Event()
-        self.frame_log = FrameLog()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
@@ -150,7 +149,6 @@ class LiveTwin(Rig):
         self.sim, _ = rig_and_ctrl()
         self.drives, self.camera = self.sim.drives, self.sim.camera
         self.observations = PacedSource(fps)
-        self.frame_log = self.observations.frame_log
 
     def start_clock(self):
         self.observations.t0 = time.monotonic()

@@ -131,6 +131,8 @@ class ObservationSource(abc.ABC):
 
     signals_arrivals: bool = False
     """True when :meth:`wait_arrival` wakes up on an arrival (live sources with their own thread)."""
+    frame_log: FrameLog
+    """Camera frames this source captured and how many gave a valid observation (set by each source)."""
 
     @abc.abstractmethod
     def poll(self, now: float) -> list[Observation]:
@@ -156,6 +158,7 @@ class HandoffSource(ObservationSource):
     def __init__(self) -> None:
         self._slot: Observation | None = None
         self._ready = threading.Condition(threading.Lock())
+        self.frame_log = FrameLog()
 
     def deliver(self, obs: Observation) -> None:
         """Hand ``obs`` to the loop (producer thread)."""
@@ -182,12 +185,15 @@ class Rig(abc.ABC):
     observations: ObservationSource
     camera: CameraParams
     """The tip camera the observations come from (image size, principal point, video latency)."""
-    frame_log: FrameLog
-    """Camera frames captured and how many gave a valid observation."""
 
     @abc.abstractmethod
     def advance(self, until: float) -> None:
         """Let the rig run until time ``until`` (s). The twin integrates its physics; hardware waits."""
+
+    @property
+    def frame_log(self) -> FrameLog:
+        """Camera frames captured and how many gave a valid observation."""
+        return self.observations.frame_log
 
     def start_clock(self) -> None:
         """Loop time zero is now (called by the loop right after homing). Default: nothing to align."""

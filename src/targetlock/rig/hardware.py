@@ -132,10 +132,6 @@ class HardwareRig(Rig):
     def time(self) -> float:
         return time.monotonic() - self._t0
 
-    @property
-    def frame_log(self) -> FrameLog:
-        return self.observations.frame_log
-
     def advance(self, until: float) -> None:
         pass  # the wall clock moves the hardware; the loop sleeps until each deadline
 

@@ -92,6 +92,7 @@ class SimDrives(Drives):
 class _LatencySource(ObservationSource):
     def __init__(self, latency: float) -> None:
         self.line = LatencyLine(latency)
+        self.frame_log = FrameLog()
 
     def poll(self, now: float) -> list[Observation]:
         return [item for _, item in self.line.pop_ready(now)]
@@ -117,7 +118,6 @@ class SimulatedRig(Rig):
         self.frame_hook = frame_hook
         self.drives = SimDrives(self)
         self.observations = _LatencySource(twin.camera.latency)
-        self.frame_log = FrameLog()
         self._settle(settle_seconds)
         self.start_camera_pose = self.camera_pose()
         self.scene = Scene(twin.scene, twin.camera, self.start_camera_pose)
@@ -184,7 +184,7 @@ class SimulatedRig(Rig):
             obs = self.frame_hook(self, t, truth)
         else:
             obs = self._ideal_observation(t, truth)
-        self.frame_log.record(t, obs is not None and obs.valid)
+        self.observations.frame_log.record(t, obs is not None and obs.valid)
         if obs is not None:
             self.observations.line.push(t, dataclasses.replace(obs, arrival_time=t + self.twin.camera.latency))
 

@@ -19,7 +19,7 @@ import threading
 import time
 
 from ..model.camera import CameraParams
-from ..rig.base import FrameLog, HandoffSource, Observation
+from ..rig.base import HandoffSource, Observation
 from .sources import CaptureSource, FrameSource, VideoFileSource
 from .tracker import make_tracker, to_observation
 
@@ -48,7 +48,6 @@ class CameraObservations(HandoffSource):
         self.window_px = config.window_px
         self._stop = threading.Event()
         self._t0 = time.monotonic()
-        self.frame_log = FrameLog()
         self.frames = 0
         self.track_seconds = 0.0
         self._thread = threading.Thread(target=self._run, name="targetlock-vision", daemon=True)
