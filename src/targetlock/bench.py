@@ -10,7 +10,7 @@ import numpy as np
 from .model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
 from .model.twin import TwinConfig
 
-__all__ = ["bench_model", "bench_loop", "bench_vision"]
+__all__ = ["bench_model", "bench_loop", "bench_frame_to_setpoint", "bench_vision"]
 
 
 def _randomised(base: EndoscopeParams, rng: np.random.Generator, n: int) -> list[EndoscopeParams]:
@@ -96,7 +96,74 @@ def bench_loop(seconds: float = 40.0, repeats: int = 3) -> dict:
         ctrl.step(obs[k], motor, 0.02 * (k + 1))
     ik_ms = (time.perf_counter() - t0) / n * 1e3
     return {"realtime_factor": seconds / wall, "sim_seconds": seconds, "wall_seconds": wall,
-            "controller": "pi-hc", "ik_step_ms": ik_ms, "ik_steps": n}
+            "controller": "pi-hc", "ik_step_ms": ik_ms, "ik_steps": n, **bench_frame_to_setpoint()}
+
+
+def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: float = 50.0) -> dict:
+    """Frame arrival -> set-point sent (ms) on the wall-clock loop with a live source: a thread
+    delivers observations at ``fps`` (not locked to the loop's ``rate``, so arrivals fall at every
+    phase of the period), the twin's drives take the set-points; PI controller. Measured with the
+    loop's early ticks on (the default) and off (a frame waits for the next tick)."""
+    import threading
+
+    from .controllers import ControllerConfig
+    from .experiments.target_lock import RunConfig, build_controller, build_rig
+    from .loop.clock import WallClock
+    from .loop.runner import ControlLoop
+    from .rig.base import HandoffSource, Observation, Rig
+
+    class PacedSource(HandoffSource):
+        def __init__(self) -> None:
+            super().__init__()
+            self.t0 = time.monotonic()
+            self.stop = threading.Event()
+            self.thread = threading.Thread(target=self._run, daemon=True)
+
+        def start(self) -> None:
+            """Frames from loop time zero on (all arrival times on the loop's clock)."""
+            self.t0 = time.monotonic()
+            self.thread.start()
+
+        def _run(self) -> None:
+            k, w0 = 0, time.monotonic()
+            while not self.stop.wait(max(0.0, w0 + k / fps - time.monotonic())):
+                now = time.monotonic() - self.t0
+                self.deliver(Observation(capture_time=now - 0.1, offset=np.array([5.0, -3.0]), valid=True,
+                                         frame_index=k, arrival_time=now))
+                k += 1
+
+        def close(self) -> None:
+            self.stop.set()
+            if self.thread.is_alive():
+                self.thread.join()
+
+    class LiveRig(Rig):
+        def __init__(self, sim) -> None:
+            self.sim, self.drives, self.camera = sim, sim.drives, sim.camera
+            self.observations = PacedSource()
+
+        def start_clock(self) -> None:
+            self.observations.start()
+
+        def advance(self, until: float) -> None:
+            self.sim.advance(until)
+            self.sim.observations.poll(until)   # the twin's own frames are not used here
+
+    out = {}
+    cfg = RunConfig(controller=ControllerConfig(kind="pi"))
+    for label, early in (("", True), ("_tick_only", False)):
+        with LiveRig(build_rig(cfg)) as rig:
+            ms: list[float] = []
+            loop = ControlLoop(rig, build_controller(cfg, rig), rate=rate, clock=WallClock(), step_on_arrival=early)
+            try:
+                loop.run(seconds, lambda tk: tk.observation is not None and
+                         ms.append(1e3 * (tk.sent - tk.observation.arrival_time)))
+            finally:
+                rig.observations.close()
+        out[f"frame_to_setpoint_p50_ms{label}"] = float(np.percentile(ms, 50))
+        out[f"frame_to_setpoint_p99_ms{label}"] = float(np.percentile(ms, 99))
+    out["frame_to_setpoint_frames"] = len(ms)
+    return out
 
 
 def bench_vision(seconds: float = 20.0, seed: int = 0) -> dict:

@@ -10,7 +10,7 @@ from targetlock.controllers import ControllerConfig
 from targetlock.experiments.compare import with_controller, with_latency
 from targetlock.experiments.runfolder import RunFolder
 from targetlock.experiments.step_response import run_step_responses
-from targetlock.experiments.target_lock import RunConfig, run_target_lock
+from targetlock.experiments.target_lock import COLUMNS, RunConfig, run_target_lock
 from targetlock.loop.runner import LoopConfig
 from targetlock.rig.simulated import ObservationNoise
 
@@ -148,3 +148,85 @@ def test_model_2_compensation_does_not_chatter_through_the_centre():
         assert d[:, 8].min() < 0.0 < d[:, 8].max()            # the handle did cross the centre
     assert out["pi-hc2"][0] <= out["pi"][0] + 5
     assert out["pi-hc2"][1] < 1.5 * out["pi"][1]
+
+
+def recorder_run(tmp_path, seconds, rig=None, sample_at=()):
+    """The loop with the run's recorder streaming to a CSV; traced memory (bytes) at the given ticks."""
+    import gc
+    import tracemalloc
+
+    from targetlock.experiments.target_lock import _Recorder, build_controller, build_rig
+    from targetlock.experiments.runfolder import TimeSeriesWriter
+    from targetlock.loop.runner import ControlLoop
+
+    cfg = dataclasses.replace(BASE, controller=ControllerConfig(kind="pi"))
+    rig = rig or build_rig(cfg)
+    writer = TimeSeriesWriter(tmp_path / "t.csv", COLUMNS)
+    rec = _Recorder(rig, build_controller(cfg, rig), after=cfg.loop.metrics_after, writer=writer)
+    memory = {}
+
+    def on_tick(tick):
+        rec(tick)
+        if sample_at and tick.index == sample_at[0] - 100:
+            tracemalloc.start()     # traced only from shortly before the first sample: tracing is slow
+        if tick.index in sample_at:
+            writer.flush()          # the writer's own buffer (<= 0.5 s of rows) is not what we measure
+            gc.collect()            # nor garbage waiting for the collector (np.savetxt makes cycles)
+            memory[tick.index] = tracemalloc.get_traced_memory()[0]
+
+    try:
+        ControlLoop(rig, rec.ctrl, rate=cfg.loop.rate).run(seconds, on_tick)
+    finally:
+        tracemalloc.stop()
+        writer.close()
+    return rec, memory
+
+
+def test_memory_does_not_grow_with_the_length_of_a_recorded_run(tmp_path):
+    rec, memory = recorder_run(tmp_path, 36.0, sample_at=(600, 1800))
+    grown = memory[1800] - memory[600]
+    # Keeping anything per tick (a row is >= 16 floats = 128 B) would grow by >= 150 kB here.
+    assert grown < 15_000, f"{grown / 1200:.1f} B per tick"
+    assert rec.rows is None and rec.thinned.n <= rec.thinned.buf.shape[0]
+    rows = np.loadtxt(tmp_path / "t.csv", delimiter=",", skiprows=1)
+    assert rows.shape == (1800, len(COLUMNS))                 # ...while every row is on disk
+    s = rec.summary(rec.rig.frame_log)
+    after = rows[rows[:, 0] >= BASE.loop.metrics_after]
+    assert s["rms_px"] == pytest.approx(np.sqrt(np.mean(after[:, 3] ** 2)), rel=1e-9)
+    assert s["peak_px"] == pytest.approx(after[:, 3].max(), rel=1e-6)
+    assert s["p95_px"] == pytest.approx(np.percentile(after[:, 3], 95), abs=0.011)
+
+
+def test_the_plot_copy_is_thinned_evenly_and_bounded():
+    from targetlock.experiments.target_lock import _Thinned
+
+    th = _Thinned(2, points=50)
+    for k in range(10_000):
+        th.add([k, 2 * k])
+    rows = th.rows()
+    assert 50 <= rows.shape[0] <= 100
+    steps = np.diff(rows[:, 0])
+    assert steps.min() == steps.max() and rows[0, 0] == 0          # evenly spaced in time
+
+
+def test_a_motion_capture_gap_does_not_turn_the_tip_range_into_nan(tmp_path):
+    from targetlock.rig.simulated import SimulatedRig
+
+    class GappyRig(SimulatedRig):
+        def tip_angles(self):
+            return np.array([np.nan, np.nan]) if 3.0 <= self.time < 3.5 else super().tip_angles()
+
+    rec, _ = recorder_run(tmp_path, 6.0, rig=GappyRig(BASE.twin))
+    rows = np.loadtxt(tmp_path / "t.csv", delimiter=",", skiprows=1)
+    gap = rows[:, 0] >= 3.0
+    assert np.isnan(rows[gap & (rows[:, 0] < 3.5), 12]).all()
+    tip = rows[(rows[:, 0] >= BASE.loop.metrics_after) & np.isfinite(rows[:, 12]), 12]
+    assert rec.summary(rec.rig.frame_log)["tip_range_deg"] == pytest.approx([tip.min(), tip.max()], abs=1e-6)
+
+
+def test_run_summary_counts_rejected_observations():
+    cfg = dataclasses.replace(BASE, loop=LoopConfig(seconds=4.0),
+                              tracker=ObservationNoise(outlier_probability=0.2, outlier_px=2000.0, seed=1))
+    s = run_target_lock(cfg)
+    assert s["rejected_observations"] == s["rejected_by_reason"]["outside_image"] > 5
+    assert np.isfinite(s["rms_px"])

@@ -17,9 +17,11 @@ def test_frames_are_captured_at_the_frame_rate():
     rig = SimulatedRig(TwinConfig())
     rig.drives.home()
     rig.advance(2.0)
-    times = np.array([t for t, _ in rig.frame_log])
+    times = np.array([o.capture_time for o in rig.observations.poll(10.0)])
     np.testing.assert_allclose(np.diff(times), 1 / 22, atol=1e-12)
     assert len(times) == int(2.0 * 22) + 1
+    log = rig.frame_log
+    assert (log.frames, log.valid, log.first, log.last) == (len(times), len(times), 0.0, times[-1])
 
 
 def test_drives_clamp_setpoints_and_report_positions_in_ticks():

@@ -6,6 +6,7 @@ after ``loop.metrics_after`` seconds while the target is in view.
 """
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -16,12 +17,18 @@ import numpy as np
 from ..config import param
 from ..controllers import ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
 from ..loop.clock import SimClock, WallClock
+from ..loop.gate import ObservationGate
 from ..loop.runner import ControlLoop, LoopConfig, Tick
+from ..loop.signals import StopSignal, stop_on_signals
+from ..loop.stats import RunningStats
 from ..model.twin import TwinConfig
+from ..rig.base import FrameLog
 from ..rig.simulated import ObservationNoise, SimulatedRig
 from .runfolder import RunFolder
 
-__all__ = ["RunConfig", "build_rig", "run_target_lock", "metrics", "plot_run", "COLUMNS"]
+__all__ = ["RunConfig", "build_rig", "run_target_lock", "plot_run", "COLUMNS"]
+
+log = logging.getLogger(__name__)
 
 COLUMNS = ["t", "err_x", "err_y", "err", "obs_x", "obs_y", "obs_valid", "obs_age", "motor_x_deg", "motor_y_deg",
            "setpoint_x_deg", "setpoint_y_deg", "tip_x_deg", "tip_y_deg", "sig_x", "sig_y"]
@@ -55,69 +62,135 @@ def build_controller(cfg: RunConfig, rig):
                            knowledge=resolve_knowledge(cfg.knowledge, cfg.twin), model_dt=cfg.twin.model_dt)
 
 
-class _Recorder:
-    """Collects one row per tick, streaming to the run folder's CSV as it goes."""
+class _Thinned:
+    """At most ``2 * points`` rows for plots, evenly spaced in time: when full, every other row is
+    dropped and only every ``stride``-th new row kept, so memory does not grow with the run."""
 
-    def __init__(self, rig, controller, writer=None) -> None:
-        self.rig, self.ctrl, self.writer = rig, controller, writer
-        self.rows: list[list[float]] = []
+    def __init__(self, columns: int, points: int = 10000) -> None:
+        self.buf = np.empty((2 * points, columns))
+        self.n = 0
+        self.stride = 1
+        self._seen = 0
+
+    def add(self, row: list[float]) -> None:
+        if self._seen % self.stride == 0:
+            if self.n == self.buf.shape[0]:
+                half = self.buf[0:self.n:2].copy()
+                self.n = half.shape[0]
+                self.buf[:self.n] = half
+                self.stride *= 2
+            if self._seen % self.stride == 0:
+                self.buf[self.n] = row
+                self.n += 1
+        self._seen += 1
+
+    def rows(self) -> np.ndarray:
+        return self.buf[:self.n].copy()
+
+
+class _Recorder:
+    """One row per tick (COLUMNS), streamed to the run folder's CSV; the summary's figures are
+    accumulated as the run goes (:class:`~targetlock.loop.stats.RunningStats`), so memory does not grow
+    with the run's length. All rows are kept in memory only with ``keep_rows``; otherwise a thinned
+    copy is kept for the plot.
+
+    Error figures use the true target offset at ticks after ``after`` (s) while the target is in view;
+    quantiles to 0.01 px (errors) and 0.01 ms (timing)."""
+
+    def __init__(self, rig, controller, *, after: float, writer=None, keep_rows: bool = False) -> None:
+        self.rig, self.ctrl, self.writer, self.after = rig, controller, writer, after
+        self.rows: list[list[float]] | None = [] if keep_rows else None
+        self.thinned = None if keep_rows else _Thinned(len(COLUMNS))
         self.last_obs = None
-        self.lateness: list[float] = []
-        self.internal: list[float] = []
+        cam = rig.camera
+        self.err = RunningStats(hist_hi=math.hypot(cam.width, cam.height), resolution=0.01)
+        self.err_x, self.err_y = RunningStats(), RunningStats()   # of |error| per axis (px)
+        self.tip_x = RunningStats()                                # deg; a motion-capture gap is NaN
+        self.ticks_after = 0
+        self.lateness = RunningStats(hist_hi=1.0, resolution=1e-5)   # s
+        self.internal = RunningStats(hist_hi=1.0, resolution=1e-5)   # s, frame arrival -> set-point sent
+        self.n_rows = 0
 
     def __call__(self, tick: Tick) -> None:
         rig = self.rig
         truth = rig.truth_offset(tick.time)
-        self.lateness.append(tick.lateness)
+        self.lateness.add(tick.lateness)
         if tick.observation is not None:
             self.last_obs = tick.observation
-            if math.isfinite(tick.observation.arrival_time):
-                self.internal.append(tick.sent - tick.observation.arrival_time)
+            self.internal.add(tick.sent - tick.observation.arrival_time)
         o = self.last_obs
         ox, oy = (o.offset[0], o.offset[1]) if o is not None else (math.nan, math.nan)
         sig = list(self.ctrl.signals().values()) + [math.nan, math.nan]
         tip = rig.tip_angles()
-        row = [tick.time, truth[0], truth[1], math.hypot(truth[0], truth[1]), ox, oy,
+        err = math.hypot(truth[0], truth[1])
+        row = [tick.time, truth[0], truth[1], err, ox, oy,
                float(o.valid) if o is not None else 0.0, tick.time - o.capture_time if o is not None else math.nan,
                math.degrees(tick.motor[0]), math.degrees(tick.motor[1]),
                math.degrees(tick.setpoint[0]), math.degrees(tick.setpoint[1]),
                math.degrees(tip[0]), math.degrees(tip[1]), sig[0], sig[1]]
-        self.rows.append(row)
+        if tick.time >= self.after:
+            self.ticks_after += 1
+            self.tip_x.add(row[12])
+            if math.isfinite(err):
+                self.err.add(err)
+                self.err_x.add(abs(row[1]))
+                self.err_y.add(abs(row[2]))
+        self.n_rows += 1
+        if self.rows is not None:
+            self.rows.append(row)
+        else:
+            self.thinned.add(row)
         if self.writer is not None:
             self.writer.write(row)
 
+    def data(self) -> np.ndarray:
+        """All rows (``keep_rows``) or the thinned ones, as an array (COLUMNS)."""
+        if self.rows is not None:
+            return np.asarray(self.rows, dtype=float).reshape(-1, len(COLUMNS))
+        return self.thinned.rows()
 
-def metrics(data: np.ndarray, frame_log: list[tuple[float, bool]], after: float) -> dict:
-    """Error figures (px) from recorded rows (COLUMNS) after ``after`` s, and the lost fraction."""
-    t = data[:, 0]
-    err = data[:, 3]
-    sel = t >= after
-    tracked = sel & np.isfinite(err)
-    e = err[tracked]
-    frames = [v for (tf, v) in frame_log if tf >= after]
-    out = {
-        "rms_px": float(np.sqrt(np.mean(e ** 2))) if e.size else math.nan,
-        "peak_px": float(np.max(e)) if e.size else math.nan,
-        "p95_px": float(np.percentile(e, 95)) if e.size else math.nan,
-        "mean_px": float(np.mean(e)) if e.size else math.nan,
-        "out_of_view_fraction": float(1.0 - tracked.sum() / max(sel.sum(), 1)),
-        "lost_fraction": float(1.0 - sum(frames) / len(frames)) if frames else math.nan,
-        "frames": len(frames),
-    }
-    for k, name in ((1, "x"), (2, "y")):
-        ex = data[tracked, k]
-        out[f"rms_{name}_px"] = float(np.sqrt(np.mean(ex ** 2))) if ex.size else math.nan
-        out[f"peak_{name}_px"] = float(np.max(np.abs(ex))) if ex.size else math.nan
-    out["tip_range_deg"] = [float(np.min(data[sel, 12])), float(np.max(data[sel, 12]))] if sel.any() else []
-    return out
+    def summary(self, frames: FrameLog) -> dict:
+        """Error figures (px) after ``after``, the lost fractions and the tip's range (deg)."""
+        e = self.err
+        out = {
+            "rms_px": e.rms, "peak_px": e.max if e.count else math.nan, "p95_px": e.quantile(0.95),
+            "mean_px": e.mean,
+            "out_of_view_fraction": 1.0 - e.count / max(self.ticks_after, 1),
+            "lost_fraction": frames.lost_fraction, "frames": frames.frames,
+        }
+        for s, name in ((self.err_x, "x"), (self.err_y, "y")):
+            out[f"rms_{name}_px"] = s.rms
+            out[f"peak_{name}_px"] = s.max if s.count else math.nan
+        out["tip_range_deg"] = self.tip_x.range()
+        return out
+
+    def timing_ms(self) -> dict:
+        late, internal = self.lateness, self.internal
+        return {"period_jitter_p50": 1e3 * late.quantile(0.5), "period_jitter_p99": 1e3 * late.quantile(0.99),
+                "period_jitter_max": 1e3 * late.max if late.count else math.nan,
+                "frame_to_setpoint_p50": 1e3 * internal.quantile(0.5),
+                "frame_to_setpoint_p99": 1e3 * internal.quantile(0.99)}
 
 
 def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: bool = False,
-                    frame_hook=None, rig=None, video=None) -> dict:
+                    frame_hook=None, rig=None, video=None, keep_rows: bool | None = None) -> dict:
     """Run the closed loop as configured; returns the summary (and fills ``run`` if given).
 
-    ``rig``: a rig to run on instead of the in-process twin (e.g. a :class:`HardwareRig`); it
-    then runs on the wall clock and must offer ``truth_offset``, ``tip_angles`` and ``frame_log``."""
+    ``rig``: a rig to run on instead of the in-process twin (e.g. a :class:`HardwareRig`); it then
+    runs on the wall clock. ``keep_rows`` (default: without a run folder) returns every row as
+    ``summary["_data"]`` (COLUMNS); with a run folder the rows are only streamed to its CSV, so
+    memory stays the same however long the run.
+
+    SIGTERM, SIGHUP and Ctrl-C (see :mod:`targetlock.loop.signals`) stop the run like an error: the
+    drives are disabled, the CSV flushed, and the summary of what was recorded written with
+    ``"stopped"`` naming the signal, before :class:`~targetlock.loop.signals.StopSignal` is re-raised."""
+    with stop_on_signals():
+        return _run_target_lock(cfg, run, progress=progress, frame_hook=frame_hook, rig=rig, video=video,
+                                keep_rows=run is None if keep_rows is None else keep_rows)
+
+
+def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, frame_hook, rig, video,
+                     keep_rows: bool) -> dict:
     hardware = rig is not None
     vision = None
     if cfg.vision and frame_hook is None and not hardware:
@@ -126,9 +199,12 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
     rig = rig if hardware else build_rig(cfg, frame_hook)
     ctrl = build_controller(cfg, rig)
     realtime = cfg.realtime or hardware
-    loop = ControlLoop(rig, ctrl, rate=cfg.loop.rate, clock=WallClock() if realtime else SimClock())
+    gate = ObservationGate.for_camera(cfg.loop.gate, rig.camera)
+    loop = ControlLoop(rig, ctrl, rate=cfg.loop.rate, clock=WallClock() if realtime else SimClock(), gate=gate,
+                       step_on_arrival=cfg.loop.step_on_arrival)
+    rig.frame_log.since = cfg.loop.metrics_after
     writer = run.timeseries(COLUMNS) if run is not None else None
-    rec = _Recorder(rig, ctrl, writer)
+    rec = _Recorder(rig, ctrl, after=cfg.loop.metrics_after, writer=writer, keep_rows=keep_rows)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -139,9 +215,12 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
         if bar is not None and tick.index % int(cfg.loop.rate) == 0:
             bar.update(1)
 
+    stopped: BaseException | None = None
     t0 = time.perf_counter()
     try:
         loop.run(cfg.loop.seconds, on_tick)
+    except BaseException as exc:  # noqa: BLE001 - the loop has disabled the drives; finish the record, re-raise
+        stopped = exc
     finally:
         wall = time.perf_counter() - t0
         if writer is not None:
@@ -150,26 +229,52 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
             bar.close()
         if vision is not None:
             vision.close()
-    data = np.asarray(rec.rows, dtype=float)
-    summary = metrics(data, rig.frame_log, cfg.loop.metrics_after)
+    try:
+        summary = _finish(cfg, rec, rig, gate, run, wall=wall, hardware=hardware, realtime=realtime, vision=vision,
+                          keep_rows=keep_rows, stopped=stopped)
+    except Exception:
+        if stopped is None:
+            raise
+        log.exception("writing the summary of the stopped run failed")
+        raise stopped from None
+    if stopped is not None:
+        raise stopped
+    return summary
+
+
+def _finish(cfg: RunConfig, rec: _Recorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
+            hardware: bool, realtime: bool, vision, keep_rows: bool, stopped: BaseException | None) -> dict:
+    """The summary of what was recorded (also of a run that was stopped), its plot and summary file."""
+    data = rec.data()
+    summary = rec.summary(rig.frame_log)
+    recorded = rec.n_rows / cfg.loop.rate
     summary.update({"rig": "hardware" if hardware else "twin", "controller": cfg.controller.kind, "path": cfg.twin.scene.path, "latency_s": cfg.twin.camera.latency,
                     "fps": cfg.twin.camera.fps, "preset": cfg.twin.preset,
-                    "knowledge": ctrl.knowledge.label, "target_losses": ctrl.losses, "sim_seconds": cfg.loop.seconds,
-                    "wall_seconds": wall, "realtime_factor": cfg.loop.seconds / wall if wall > 0 else math.inf})
+                    "knowledge": rec.ctrl.knowledge.label, "target_losses": rec.ctrl.losses,
+                    "sim_seconds": cfg.loop.seconds,
+                    "wall_seconds": wall, "realtime_factor": recorded / wall if wall > 0 else math.inf,
+                    "rows": rec.n_rows, "rejected_observations": gate.n_rejected,
+                    "rejected_by_reason": dict(gate.rejected)})
+    if stopped is not None:
+        why = stopped.signal_name if isinstance(stopped, StopSignal) else \
+            "Ctrl-C" if isinstance(stopped, KeyboardInterrupt) else f"{type(stopped).__name__}: {stopped}"
+        summary.update({"stopped": why, "recorded_seconds": recorded, "drives_disabled": rig.drives.is_disabled()})
     if vision is not None:
         summary["vision"] = vision.stats()
     if realtime:
-        late, internal = np.array(rec.lateness) * 1e3, np.array(rec.internal) * 1e3
-        summary["timing_ms"] = {
-            "period_jitter_p50": float(np.percentile(late, 50)), "period_jitter_p99": float(np.percentile(late, 99)),
-            "period_jitter_max": float(late.max()),
-            "frame_to_setpoint_p50": float(np.percentile(internal, 50)) if internal.size else math.nan,
-            "frame_to_setpoint_p99": float(np.percentile(internal, 99)) if internal.size else math.nan}
-    summary["_data"] = data
+        summary["timing_ms"] = rec.timing_ms()
+    if keep_rows:
+        summary["_data"] = data
     if run is not None:
-        plot_run(data, cfg, run.file("tracking.png"))
         summary["run_folder"] = str(run.path)
         run.write_summary({k: v for k, v in summary.items() if not k.startswith("_")})
+        if data.shape[0]:
+            plot_run(data, cfg, run.file("tracking.png"))
+    if stopped is not None:
+        confirmed = {True: " (confirmed by the drives)", False: " (NOT confirmed: check the drives)", None: ""}
+        log.warning("run stopped (%s) after %.1f s: drives disabled%s; %d rows%s", summary["stopped"], recorded,
+                    confirmed[summary["drives_disabled"]], rec.n_rows,
+                    f" and the summary in {run.path}" if run is not None else " recorded")
     return summary
 
 

@@ -299,6 +299,10 @@ class SafeDrives(Drives):
         """Disable the drives and trip: an explicit enable() is needed to move again."""
         self._trip("disabled on request")
 
+    def is_disabled(self) -> bool | None:
+        """What the drives themselves confirm about their power stage (None: they cannot tell)."""
+        return self.inner.is_disabled()
+
     def enable(self) -> None:
         """Explicit resume: re-enable the drives (fault reset there) and clear the trip if healthy."""
         with self._lock:

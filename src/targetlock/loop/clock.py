@@ -12,6 +12,9 @@ __all__ = ["Clock", "SimClock", "WallClock"]
 
 
 class Clock(abc.ABC):
+    realtime: bool = False
+    """True when time passes on its own (the wall clock): the loop may then act between deadlines."""
+
     @abc.abstractmethod
     def now(self) -> float:
         """Seconds since start()."""
@@ -44,6 +47,8 @@ class SimClock(Clock):
 
 class WallClock(Clock):
     """Monotonic wall time; sleeps coarsely, then spins the last ``spin`` seconds for low jitter."""
+
+    realtime = True
 
     def __init__(self, spin: float = 0.0005) -> None:
         self._t0 = time.perf_counter()

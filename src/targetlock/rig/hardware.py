@@ -33,7 +33,7 @@ from ..interfaces.rigfile import HardwareRigConfig
 from ..interfaces.safety import SafeDrives
 from ..model.camera import CameraParams, LatencyLine, project, world_to_camera
 from ..model.kinematics import bending_angles_from_poses
-from .base import Observation, ObservationSource, Rig
+from .base import FrameLog, Observation, ObservationSource, Rig
 
 __all__ = ["HardwareRig", "MocapObservations", "pose_of", "calibrate_straight", "CALIBRATION_WAIT_S"]
 
@@ -61,7 +61,7 @@ class MocapObservations(ObservationSource):
         self.tip_correction = np.eye(3)
         """Tip body frame -> camera frame (3x3), from :func:`calibrate_straight`."""
         self.next_frame = 0
-        self.frame_log: list[tuple[float, bool]] = []
+        self.frame_log = FrameLog()
         self._cache: tuple[object, tuple[np.ndarray, np.ndarray, float] | None] = (None, None)
 
     def measure(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -105,7 +105,7 @@ class MocapObservations(ObservationSource):
             t = self.next_frame * period
             self.line.push(t, Observation(capture_time=t, offset=offset, valid=valid, frame_index=self.next_frame,
                                           truth=offset, arrival_time=t + self.camera.latency))
-            self.frame_log.append((t, valid))
+            self.frame_log.record(t, valid)
             self.next_frame += 1
         return [item for _, item in self.line.pop_ready(now)]
 
@@ -178,10 +178,6 @@ class HardwareRig(Rig):
     def time(self) -> float:
         return time.monotonic() - self._t0
 
-    @property
-    def frame_log(self) -> list[tuple[float, bool]]:
-        return getattr(self.observations, "frame_log", [])
-
     def advance(self, until: float) -> None:
         pass  # the wall clock moves the hardware; the loop sleeps until each deadline
 
@@ -215,6 +211,4 @@ class HardwareRig(Rig):
             self.drives.close()
         finally:
             self.client.stop()
-            closer = getattr(self.observations, "close", None)
-            if closer is not None:
-                closer()
+            self.observations.close()

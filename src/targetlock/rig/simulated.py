@@ -21,7 +21,8 @@ from ..model.endoscope import advance, handle_for_tip, initial_state, pack_param
 from ..model.kinematics import tip_pose
 from ..model.scene import Scene
 from ..model.twin import TwinConfig
-from .base import Drives, Observation, ObservationSource, Rig
+from ..interfaces.errors import MotionRefused
+from .base import Drives, FrameLog, Observation, ObservationSource, Rig
 
 __all__ = ["ObservationNoise", "SimulatedRig", "SimDrives"]
 
@@ -37,7 +38,8 @@ class ObservationNoise:
 
 
 class SimDrives(Drives):
-    """The twin's drives: ticks in, ticks out; no motion before homing; setpoints clamped."""
+    """The twin's drives: ticks in, ticks out; no motion before homing or after :meth:`disable`
+    (the handles hold where they are); setpoints clamped."""
 
     def __init__(self, rig: "SimulatedRig") -> None:
         self._rig = rig
@@ -46,6 +48,7 @@ class SimDrives(Drives):
         self._lo = np.array([p.min_ticks, p.min_ticks], dtype=np.int64)
         self._hi = np.array([p.max_ticks, p.max_ticks], dtype=np.int64)
         self.last_ticks = np.zeros(2, dtype=np.int64)
+        self._disabled = False
 
     @property
     def homed(self) -> bool:
@@ -57,10 +60,22 @@ class SimDrives(Drives):
 
     def send_setpoints(self, ticks: np.ndarray) -> None:
         if not self._homed:
-            raise RuntimeError("drives are not homed: no motion before homing")
+            raise MotionRefused("drives are not homed: no motion before homing")
+        if self._disabled:
+            raise MotionRefused("drives are disabled: call enable() to resume")
         t = np.clip(np.asarray(ticks, dtype=np.int64), self._lo, self._hi)
         self.last_ticks = t
         self._rig.setpoint_rad[:] = t * self.rad_per_tick
+
+    def disable(self) -> None:
+        # The twin's set-point stays where it is: the handles hold, as a braked drive would.
+        self._disabled = True
+
+    def enable(self) -> None:
+        self._disabled = False
+
+    def is_disabled(self) -> bool:
+        return self._disabled
 
     def positions(self) -> np.ndarray:
         return np.rint(self._rig.state[0, 0:2] / self.rad_per_tick).astype(np.int64)
@@ -77,6 +92,7 @@ class SimDrives(Drives):
 class _LatencySource(ObservationSource):
     def __init__(self, latency: float) -> None:
         self.line = LatencyLine(latency)
+        self.frame_log = FrameLog()
 
     def poll(self, now: float) -> list[Observation]:
         return [item for _, item in self.line.pop_ready(now)]
@@ -92,6 +108,7 @@ class SimulatedRig(Rig):
                  frame_hook: Callable[["SimulatedRig", float, np.ndarray], Observation | None] | None = None,
                  settle_seconds: float = 4.0) -> None:
         self.twin = twin
+        self.camera = twin.camera
         self.noise = noise or ObservationNoise()
         self.rng = np.random.default_rng(self.noise.seed)
         self.params = pack_params(twin.endoscope, twin.drive)
@@ -101,7 +118,6 @@ class SimulatedRig(Rig):
         self.frame_hook = frame_hook
         self.drives = SimDrives(self)
         self.observations = _LatencySource(twin.camera.latency)
-        self.frame_log: list[tuple[float, bool]] = []
         self._settle(settle_seconds)
         self.start_camera_pose = self.camera_pose()
         self.scene = Scene(twin.scene, twin.camera, self.start_camera_pose)
@@ -168,7 +184,7 @@ class SimulatedRig(Rig):
             obs = self.frame_hook(self, t, truth)
         else:
             obs = self._ideal_observation(t, truth)
-        self.frame_log.append((t, obs is not None and obs.valid))
+        self.observations.frame_log.record(t, obs is not None and obs.valid)
         if obs is not None:
             self.observations.line.push(t, dataclasses.replace(obs, arrival_time=t + self.twin.camera.latency))
 

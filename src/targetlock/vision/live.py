@@ -1,22 +1,25 @@
 """Live observations on a rig: frames from a capture device (or video file) tracked in their own thread.
 
 The thread reads frames as fast as they come, tracks each one and leaves only the newest result in a
-one-slot hand-off, so the 50 Hz loop never waits for vision and never works through a backlog (the
-report's buffering problem, §3.1). The target is selected at the image centre on the first frame,
-where the endoscope was pointed when the lock engaged.
+one-slot hand-off (:class:`~targetlock.rig.base.HandoffSource`), so the loop never waits for vision,
+never works through a backlog (the report's buffering problem, §3.1), and is woken as soon as a
+result is ready. The target is selected at the image centre on the first frame, where the endoscope
+was pointed when the lock engaged.
 
-Times: frames carry the host's monotonic clock at grab; ``poll(now)`` takes loop time, so the source
-is told the loop's time zero with :meth:`start_clock`.
+Times are on the loop's clock (s since the loop started, told with :meth:`start_clock`), and an
+observation's ``capture_time`` means what it means on the twin: when the scene was imaged, i.e. the
+grab time minus the video ``latency`` (the configured or measured capture-to-host delay). A capture
+device is stamped with the host's monotonic clock at grab; a video file (or any source whose
+timestamps are positions in a stream) is paced at its frame rate — frame k is released k/fps
+after the first — and stamped at its release, as a camera delivering it then would be.
 """
 from __future__ import annotations
 
 import threading
 import time
 
-import numpy as np
-
 from ..model.camera import CameraParams
-from ..rig.base import Observation, ObservationSource
+from ..rig.base import HandoffSource, Observation
 from .sources import CaptureSource, FrameSource, VideoFileSource
 from .tracker import make_tracker, to_observation
 
@@ -28,33 +31,51 @@ def open_source(device: str) -> FrameSource:
     return CaptureSource(int(device)) if device.strip().isdigit() else VideoFileSource(device)
 
 
-class CameraObservations(ObservationSource):
-    """Tracker thread over a frame source with a newest-only hand-off to the loop."""
+class CameraObservations(HandoffSource):
+    """Tracker thread over a frame source with a newest-only hand-off to the loop.
 
-    def __init__(self, config, camera: CameraParams, *, source: FrameSource | None = None) -> None:
+    ``latency`` (s): capture-to-grab delay subtracted from each grab time (default: the camera's
+    configured video latency)."""
+
+    def __init__(self, config, camera: CameraParams, *, source: FrameSource | None = None,
+                 latency: float | None = None) -> None:
+        super().__init__()
         self.camera = camera
+        self.latency = float(camera.latency if latency is None else latency)
         self.source = source or open_source(config.device)
+        self.live = isinstance(self.source, CaptureSource)   # stamps on the monotonic clock
         self.tracker = make_tracker(config.tracker, camera=camera)
         self.window_px = config.window_px
-        self._slot: Observation | None = None
-        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._t0 = time.monotonic()
-        self.frame_log: list[tuple[float, bool]] = []
         self.frames = 0
         self.track_seconds = 0.0
         self._thread = threading.Thread(target=self._run, name="targetlock-vision", daemon=True)
         self._thread.start()
 
     def start_clock(self, t0: float) -> None:
-        """Monotonic time (s) of loop time zero."""
+        """Monotonic time (s) of loop time zero; frames counted before it are forgotten."""
         self._t0 = t0
+        self.frame_log.reset()
+
+    def _grab(self, pace_origin: list[float]) -> tuple[bool, object, float]:
+        """Next frame and its grab time (s, monotonic). A stream's frames are released at their
+        timestamps after the first frame's release (``pace_origin`` holds that origin)."""
+        ok, frame, stamp = self.source.read()
+        if not ok or self.live:
+            return ok, frame, stamp if ok else time.monotonic()
+        if not pace_origin:
+            pace_origin.append(time.monotonic() - stamp)
+        release = pace_origin[0] + stamp
+        self._stop.wait(max(0.0, release - time.monotonic()))
+        return True, frame, release
 
     def _run(self) -> None:
         selected = False
         cam = self.camera
+        pace_origin: list[float] = []
         while not self._stop.is_set():
-            ok, frame, t_grab = self.source.read()
+            ok, frame, t_grab = self._grab(pace_origin)
             if not ok:
                 if isinstance(self.source, VideoFileSource):
                     break  # end of the file
@@ -65,19 +86,14 @@ class CameraObservations(ObservationSource):
                 selected = self.tracker.select(frame, (cam.cx, cam.cy), self.window_px)
             result = self.tracker.update(frame)
             self.track_seconds += time.perf_counter() - start
-            now = time.monotonic() - self._t0
-            obs = to_observation(result, t_grab - self._t0, cam.cx, cam.cy, frame_index=self.frames)
+            t0 = self._t0
+            obs = to_observation(result, t_grab - t0 - self.latency, cam.cx, cam.cy, frame_index=self.frames)
             obs = Observation(capture_time=obs.capture_time, offset=obs.offset, valid=obs.valid,
-                              confidence=obs.confidence, frame_index=obs.frame_index, arrival_time=now)
-            with self._lock:
-                self._slot = obs
-                self.frame_log.append((obs.capture_time, obs.valid))
+                              confidence=obs.confidence, frame_index=obs.frame_index,
+                              arrival_time=time.monotonic() - t0)
+            self.frame_log.record(obs.capture_time, obs.valid)
+            self.deliver(obs)
             self.frames += 1
-
-    def poll(self, now: float) -> list[Observation]:
-        with self._lock:
-            obs, self._slot = self._slot, None
-        return [] if obs is None else [obs]
 
     def close(self) -> None:
         self._stop.set()
