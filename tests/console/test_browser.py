@@ -132,8 +132,8 @@ def test_gain_change_takes_effect_and_bad_gain_is_refused(page, session):
     page.locator("#apply").click()
     page.wait_for_function("window.tl.errors.length > 0", timeout=5000)
     msg = page.locator("#message").inner_text()
-    assert "controller.i_gain = -5.0 is out of range; allowed: [0.0, 100000.0]" in msg
-    assert session.switch.inner.cfg.i_gain == 300.0
+    assert "controller.i_gain = -5.0 is out of range; allowed: [-1.0, 100000.0]" in msg
+    assert session.switch.inner.cfg.integral_gain == 300.0      # unchanged: the controller's own default
     page.fill("input[name=i_gain]", "150")
     page.select_option("#kind", "pi")
     page.locator("#apply").click()

@@ -7,16 +7,15 @@ import pytest
 from targetlock.config import ConfigError
 from targetlock.console.session import LockSwitch, MovableScene
 from targetlock.controllers import ControllerConfig, make_controller
+from targetlock.controllers.knowledge import nominal_knowledge
 from targetlock.model.camera import CameraParams
 from targetlock.model.scene import SceneParams
 from targetlock.rig.base import Observation
 
 
 def _pi(i_gain: float = 300.0):
-    cam = CameraParams()
     return make_controller(ControllerConfig(kind="pi", i_gain=i_gain), rad_per_tick=1e-4, lower=np.full(2, -3.0),
-                           upper=np.full(2, 3.0), control_dt=0.02, camera=cam, tip_length=0.04, n_elements=1,
-                           latency=0.0)
+                           upper=np.full(2, 3.0), control_dt=0.02, knowledge=nominal_knowledge())
 
 
 def _obs(t: float, off=(40.0, -20.0)) -> Observation:

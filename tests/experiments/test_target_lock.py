@@ -155,14 +155,14 @@ def recorder_run(tmp_path, seconds, rig=None, sample_at=()):
     import gc
     import tracemalloc
 
-    from targetlock.experiments.target_lock import _Recorder, build_controller, build_rig
+    from targetlock.experiments.target_lock import RunRecorder, build_controller, build_rig
     from targetlock.experiments.runfolder import TimeSeriesWriter
     from targetlock.loop.runner import ControlLoop
 
     cfg = dataclasses.replace(BASE, controller=ControllerConfig(kind="pi"))
     rig = rig or build_rig(cfg)
     writer = TimeSeriesWriter(tmp_path / "t.csv", COLUMNS)
-    rec = _Recorder(rig, build_controller(cfg, rig), after=cfg.loop.metrics_after, writer=writer)
+    rec = RunRecorder(rig, build_controller(cfg, rig), after=cfg.loop.metrics_after, writer=writer)
     memory = {}
 
     def on_tick(tick):

@@ -40,6 +40,8 @@ def test_a_run_writes_its_rows_to_run_mcap_as_it_goes(exported):
     live = _messages(exported / "live.mcap", "/timeseries")
     exp = _messages(exported / "run.mcap", "/timeseries")
     assert len(live) == len(csv) == len(exp)
+    live_tf, exp_tf = _messages(exported / "live.mcap", "/tf"), _messages(exported / "run.mcap", "/tf")
+    assert len(live_tf) == len(exp_tf) == 2 * len(csv)     # the run writes the scene of every row too
     for (t_live, m_live), (t_exp, m_exp) in zip(live, exp):
         assert t_live == t_exp
         for c, v in m_live.items():       # the CSV (and so the export) keeps 9 significant digits

@@ -37,7 +37,8 @@ import numpy as np
 from ..config import ConfigError, from_dict, to_dict, validate
 from ..controllers.base import CONTROLLERS, Controller
 from ..experiments.runfolder import RunFolder
-from ..experiments.target_lock import COLUMNS, RunConfig, _Recorder, build_controller, metrics, plot_run
+from ..experiments.target_lock import COLUMNS, RunConfig, RunRecorder, build_controller, plot_run
+from ..rig.base import FrameLog
 from ..interfaces.safety import SafeDrives, SafetyConfig, SafetyTrip
 from ..loop.clock import WallClock
 from ..loop.runner import ControlLoop, Tick
@@ -351,7 +352,7 @@ class ConsoleSession:
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.actions: collections.deque = collections.deque(maxlen=200)
-        self._record: tuple[RunFolder, _Recorder, float, int, str] | None = None
+        self._record: tuple[RunFolder, RunRecorder, int, int, str] | None = None
         self._record_lock = threading.Lock()
         self.last_record: dict | None = None
         self._mocap_seq: collections.deque = collections.deque(maxlen=20)
@@ -497,13 +498,14 @@ class ConsoleSession:
         if self._record is not None:
             raise ConfigError(f"already recording into {self._record[0].path}")
         run = RunFolder("console", self.cfg, root=self.runs_root)      # disk work outside the loop's lock
-        rec = _Recorder(self.rig, self.switch, run.timeseries(COLUMNS))
+        rec = RunRecorder(self.rig, self.switch, after=self.time, writer=run.timeseries(COLUMNS))
         started = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
         with self._record_lock:
             if self._record is not None:
                 rec.writer.close()
                 raise ConfigError(f"already recording into {self._record[0].path}")
-            self._record = (run, rec, self.time, len(self.rig.frame_log), started)
+            log_ = self.rig.frame_log
+            self._record = (run, rec, log_.frames, log_.valid, started)
         self._act(who, "record-start", folder=str(run.path))
         return str(run.path)
 
@@ -511,12 +513,14 @@ class ConsoleSession:
         with self._record_lock:
             if self._record is None:
                 raise ConfigError("not recording")
-            run, rec, t0, first_frame, started = self._record
+            run, rec, frames0, valid0, started = self._record
             self._record = None
             self._finishing = str(run.path)     # shown as recording until the folder is complete
         rec.writer.close()
-        data = np.asarray(rec.rows, dtype=float).reshape(-1, len(COLUMNS))
-        summary = metrics(data, self.rig.frame_log[first_frame:], t0) if len(data) else {}
+        data = rec.data()
+        frames = FrameLog()            # the frames of the recording only
+        frames.frames, frames.valid = self.rig.frame_log.frames - frames0, self.rig.frame_log.valid - valid0
+        summary = rec.summary(frames) if len(data) else {}
         summary.update({"rig": "twin" if self.twin else "hardware", "controller": self.cfg.controller.kind,
                         "seconds": float(data[-1, 0] - data[0, 0]) if len(data) else 0.0,
                         "actions": [a for a in self.actions if a["time"] >= started]})
@@ -524,6 +528,7 @@ class ConsoleSession:
             plot_run(data, self.cfg, run.file("tracking.png"))
         summary["run_folder"] = str(run.path)
         run.write_summary(summary)
+        run.close()
         self.last_record = summary
         self._finishing = None
         self._act(who, "record-stop", folder=str(run.path))

@@ -23,6 +23,7 @@ from ..loop.signals import StopSignal, stop_on_signals
 from ..loop.stats import RunningStats
 from ..model.twin import TwinConfig
 from ..rig.base import FrameLog
+from ..recording import RunMcap
 from ..rig.simulated import ObservationNoise, SimulatedRig
 from .runfolder import RunFolder
 
@@ -88,7 +89,7 @@ class _Thinned:
         return self.buf[:self.n].copy()
 
 
-class _Recorder:
+class RunRecorder:
     """One row per tick (COLUMNS), streamed to the run folder's CSV; the summary's figures are
     accumulated as the run goes (:class:`~targetlock.loop.stats.RunningStats`), so memory does not grow
     with the run's length. All rows are kept in memory only with ``keep_rows``; otherwise a thinned
@@ -97,8 +98,11 @@ class _Recorder:
     Error figures use the true target offset at ticks after ``after`` (s) while the target is in view;
     quantiles to 0.01 px (errors) and 0.01 ms (timing)."""
 
-    def __init__(self, rig, controller, *, after: float, writer=None, keep_rows: bool = False) -> None:
+    def __init__(self, rig, controller, *, after: float, writer=None, keep_rows: bool = False,
+                 scene: RunMcap | None = None) -> None:
         self.rig, self.ctrl, self.writer, self.after = rig, controller, writer, after
+        self.scene = scene            # run.mcap: poses of each row, target lost/back
+        self._valid: bool | None = None
         self.rows: list[list[float]] | None = [] if keep_rows else None
         self.thinned = None if keep_rows else _Thinned(len(COLUMNS))
         self.last_obs = None
@@ -142,6 +146,13 @@ class _Recorder:
             self.thinned.add(row)
         if self.writer is not None:
             self.writer.write(row)
+        if self.scene is not None:
+            self.scene.tick(tick.time, row)
+            if o is not None and o.valid != self._valid:
+                if self._valid is not None:
+                    self.scene.log.log(tick.time, "info" if o.valid else "warning",
+                                       "target back" if o.valid else "target lost")
+                self._valid = o.valid
 
     def data(self) -> np.ndarray:
         """All rows (``keep_rows``) or the thinned ones, as an array (COLUMNS)."""
@@ -204,7 +215,12 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
                        step_on_arrival=cfg.loop.step_on_arrival)
     rig.frame_log.since = cfg.loop.metrics_after
     writer = run.timeseries(COLUMNS) if run is not None else None
-    rec = _Recorder(rig, ctrl, after=cfg.loop.metrics_after, writer=writer, keep_rows=keep_rows)
+    scene = None
+    if run is not None:
+        e = cfg.twin.endoscope
+        scene = RunMcap(run.mcap, COLUMNS, tip_length=e.tip_length, n_elements=e.n_elements, camera=rig.camera,
+                        target_pose=None if hardware else rig.scene.target_pose)
+    rec = RunRecorder(rig, ctrl, after=cfg.loop.metrics_after, writer=writer, keep_rows=keep_rows, scene=scene)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -242,7 +258,7 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
     return summary
 
 
-def _finish(cfg: RunConfig, rec: _Recorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
+def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
             hardware: bool, realtime: bool, vision, keep_rows: bool, stopped: BaseException | None) -> dict:
     """The summary of what was recorded (also of a run that was stopped), its plot and summary file."""
     data = rec.data()
