@@ -33,8 +33,8 @@ def _err(r, f) -> float:
     return float(np.hypot(*(r.position_px - f.truth_px))) if r.valid else float("inf")
 
 
-def _drift(renderer, sel_pose, n, step=(0.0003, 0.0001), **kw):
-    return [renderer.render(np.eye(4), sel_pose((-0.004 + step[0] * i, -0.001 + step[1] * i, 0.05), P_SEL,
+def _drift(renderer, sel_pose, n, step=(0.0003, 0.0001), start=(-0.004, -0.001), **kw):
+    return [renderer.render(np.eye(4), sel_pose((start[0] + step[0] * i, start[1] + step[1] * i, 0.05), P_SEL,
                                                 (0.1, -0.05, 0.3)), point_m=P_SEL,
                             **{k: (v(i) if callable(v) else v) for k, v in kw.items()}) for i in range(n)]
 
@@ -92,3 +92,46 @@ def test_a_sliding_glint_is_not_tracked(renderer, sel_pose):
     assert all(r.valid for r in res)
     errs = [float(np.hypot(*(r.position_px - still.truth_px))) for r in res]
     assert max(errs) < 0.5, np.round(errs, 2)
+
+
+def test_dropped_frames_with_capture_times_do_not_trip_the_jump_rejection(renderer, sel_pose):
+    """~13 px per frame interval (~290 px/s), 3 frames dropped at a time (~55 px between received
+    frames): the real interval scales the prediction and the jump limit, so nothing is rejected."""
+    fps = 22.0
+    all_frames = _drift(renderer, sel_pose, 25, step=(0.0025, 0.0004), start=(-0.03, -0.003))
+    keep = [0, 1, 2, 3, 7, 8, 12, 13, 17, 18, 19, 23, 24]
+    frames = [all_frames[i] for i in keep]
+    times = [i / fps for i in keep]
+    tr = FeatureTracker()
+    res = _run(tr, frames, times)
+    assert tr.stats["false_jumps"] == 0
+    errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
+    assert np.all(errs < 2.0), errs.round(2)
+    blind = FeatureTracker()       # the same frames without capture times: the jumps look false
+    _run(blind, frames)
+    assert blind.stats["false_jumps"] > 0
+
+
+def test_selection_falls_back_to_a_larger_window(renderer, sel_pose):
+    f = renderer.render(np.eye(4), sel_pose((0.0, 0.0, 0.05), P_SEL, (0.1, -0.05, 0.3)), point_m=P_SEL)
+    img = f.image.copy()
+    x, y = np.round(f.truth_px).astype(int)
+    patch = img[y - 45:y + 46, x - 45:x + 46]
+    patch[:] = patch.reshape(-1, 3).mean(axis=0).astype(np.uint8)  # no texture in the 80 px window
+    tr = FeatureTracker()
+    assert tr.select(img, f.truth_px, WINDOW), tr.failure
+    assert tr.failure is None and tr.selection["window_px"] > WINDOW
+    shifted = np.roll(img, (3, 4), axis=(0, 1))   # the same view moved by (4, 3) px
+    r = tr.update(shifted)
+    assert r.valid and np.hypot(*(r.position_px - f.truth_px - (4, 3))) < 1.0
+
+
+def test_selection_failure_says_why(cam):
+    tr = FeatureTracker()
+    dark = np.zeros((cam.height, cam.width, 3), np.uint8)
+    assert not tr.select(dark, (360, 288), WINDOW) and "dark" in tr.failure
+    flat = np.full((cam.height, cam.width, 3), 120, np.uint8)
+    assert not tr.select(flat, (360, 288), WINDOW) and "featureless" in tr.failure
+    assert not tr.select(flat, (900, 288), WINDOW) and "outside" in tr.failure
+    r = tr.update(flat)
+    assert r.lost and not r.valid

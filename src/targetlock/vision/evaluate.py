@@ -267,10 +267,10 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
             results = []
             dt = dt_lock = 0.0
             n_lock = 0
-            for f in frames[1:]:
-                locked = not getattr(tracker, "lost", False)
+            for i, f in enumerate(frames[1:], 1):
+                locked = not tracker.lost
                 t0 = time.perf_counter()
-                results.append(tracker.update(f.image))
+                results.append(tracker.update(f.image, i / cam.fps))
                 t1 = time.perf_counter() - t0
                 dt += t1
                 if locked:
@@ -280,6 +280,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
             m["fps"] = (len(results) / dt) if dt > 0 else float("inf")
             m["fps_locked"] = (n_lock / dt_lock) if dt_lock > 0 else float("nan")
             m["selected"] = bool(ok)
+            m["selection_failure"] = tracker.failure
             per_seq[name] = m
             all_frames += frames[1:]
             all_results += results
@@ -295,6 +296,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     overall["fps"] = len(all_results) / t_track if t_track > 0 else float("inf")
     overall["fps_locked"] = n_locked / t_lock if t_lock > 0 else float("nan")
     overall["render_ms"] = 1e3 * t_render / max(n_render, 1)
+    overall["selection_failures"] = sum(not m["selected"] for m in per_seq.values())
     cfg_d = asdict(cfg)
     cfg_d["sequences"] = list(cfg.sequences)
     return {"overall": overall, "sequences": per_seq, "settings": cfg_d, "seed": int(seed),

@@ -81,6 +81,8 @@ def to_observation(result: TrackResult, capture_time: float, cx: float, cy: floa
 class Tracker(abc.ABC):
     """Common interface of all trackers."""
 
+    lost: bool = True
+    """The target is lost (not selected yet, or missed too long): the tracker is searching."""
     failure: str | None = None
     """Why the last :meth:`select` failed (one line a console can show), None after a success."""
 
