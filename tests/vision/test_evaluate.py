@@ -57,7 +57,8 @@ def test_evaluate_short_run_is_json_ready_and_good():
     assert set(out["sequences"]) == {"slow", "occlusion", "rotation"}
     assert o["frames"] == 3 * 23
     assert o["median_px"] < 1.0 and o["tracked_fraction"] >= 0.95 and o["false_lock_fraction"] == 0.0
-    assert o["fps"] > 50 and o["render_ms"] > 0
+    assert o["fps"] > 0 and o["render_ms"] > 0  # speed goals: `targetlock bench vision`, not a timed test
+    assert o["selection_failures"] == 0 and all(m["selection_failure"] is None for m in out["sequences"].values())
     for m in out["sequences"].values():
         assert m["selected"] and 0.0 <= m["delta_avg"] <= 1.0
 

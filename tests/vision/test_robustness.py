@@ -98,6 +98,7 @@ def test_dropped_frames_with_capture_times_do_not_trip_the_jump_rejection(render
     """~13 px per frame interval (~290 px/s), 3 frames dropped at a time (~55 px between received
     frames): the real interval scales the prediction and the jump limit, so nothing is rejected."""
     fps = 22.0
+    renderer.reseed(7)
     all_frames = _drift(renderer, sel_pose, 25, step=(0.0025, 0.0004), start=(-0.03, -0.003))
     keep = [0, 1, 2, 3, 7, 8, 12, 13, 17, 18, 19, 23, 24]
     frames = [all_frames[i] for i in keep]
@@ -108,8 +109,7 @@ def test_dropped_frames_with_capture_times_do_not_trip_the_jump_rejection(render
     errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
     assert np.all(errs < 2.0), errs.round(2)
     blind = FeatureTracker()       # the same frames without capture times: the jumps look false
-    _run(blind, frames)
-    assert blind.stats["false_jumps"] > 0
+    assert not all(r.valid for r in _run(blind, frames))
 
 
 def test_selection_falls_back_to_a_larger_window(renderer, sel_pose):
