@@ -135,3 +135,35 @@ def test_selection_failure_says_why(cam):
     assert not tr.select(flat, (900, 288), WINDOW) and "outside" in tr.failure
     r = tr.update(flat)
     assert r.lost and not r.valid
+
+
+def test_a_slowly_covering_bar_makes_no_keyframe_and_lowers_the_confidence(renderer, sel_pose):
+    """An instrument's tip creeps over the target (5 px per frame): while it covers part of the
+    target's own patch no keyframe is made from the covered view, the confidence falls, and once
+    the target is covered the tracker stops reporting it (or reports it where it is)."""
+    from targetlock.vision.evaluate import instrument_polygon
+    renderer.reseed(3)
+    pose = sel_pose((0.0, 0.0, 0.05), P_SEL, (0.1, -0.05, 0.3))
+    tgt = renderer.render(np.eye(4), pose, point_m=P_SEL).truth_px
+    frames, gap = [], []
+    for i in range(28):
+        tip = tgt + np.array([120.0 - 5.0 * i, 0.0])     # 60 px wide bar from the right
+        gap.append(120.0 - 5.0 * i - 30.0)                # its edge's distance from the target (px)
+        frames.append(renderer.render(np.eye(4), pose, point_m=P_SEL,
+                                      occluders=[instrument_polygon(tip, (1.0, 0.15), 60.0)]))
+    tr = FeatureTracker()
+    assert tr.select(frames[0].image, frames[0].truth_px, WINDOW)
+    patch_half = 0.2 * WINDOW
+    conf, new_kf = {}, {}
+    for i, f in enumerate(frames[1:], 1):
+        k0 = tr.stats["keyframes"]
+        r = tr.update(f.image)
+        conf[i] = r.confidence if r.valid else 0.0
+        new_kf[i] = tr.stats["keyframes"] > k0
+        assert not (r.valid and _err(r, f) > 3.0), f"frame {i}: false position"
+    covering = [i for i in conf if gap[i] < patch_half]
+    assert covering and not any(new_kf[i] for i in covering)
+    clear = [conf[i] for i in conf if gap[i] > 2 * patch_half + 40]
+    partly = [conf[i] for i in covering if 0 < gap[i] <= 0.6 * patch_half]  # over a third of the patch covered
+    assert min(clear) > 0.9 and max(partly) < 0.6, (clear, partly)
+    assert all(conf[i] == 0.0 for i in conf if gap[i] < -15)   # target well under the bar: not reported

@@ -237,6 +237,10 @@ class TrackerSettings:
                                        doc="largest bright blob that is a glint; larger bright areas: only clipped pixels")
     highlight_max_share: float = param(0.25, lo=0.0, hi=1.0,
                                        doc="largest share of a region masked as highlight (the brightest are kept)")
+    patch_reject_ncc: float = param(0.2, lo=-1.0, hi=1.0,
+                                    doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
+    patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
+                                      doc="least target-patch correlation for full confidence and for making a keyframe")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -267,6 +271,7 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
+    patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -290,7 +295,7 @@ class FeatureTracker(Tracker):
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
-                      "inconsistent": 0, "outside": 0, "corrections": 0}
+                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -631,6 +636,38 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> float:
+        """Normalised cross-correlation of the target's patch (side ~0.4 window) in keyframe ``kf``
+        and in ``view``, mapped by ``key_to_frame`` (3x3), both slightly smoothed (noise) and
+        without highlight pixels; 0 for a uniform (covered) patch, 1 when the keyframe's patch
+        itself is uniform (nothing to compare)."""
+        half = max(7, int(round(0.2 * self._window)))
+        side = 2 * half + 1
+        to_patch = _translation(kf.target - half)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+
+        def sample(v: _View, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_REPLICATE)
+            return cv2.GaussianBlur(g.astype(np.float32), (5, 5), 1.0), sat == 0
+
+        if kf.patch is None:
+            kf.patch = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+        ref, ok_ref = kf.patch
+        cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+        ok = ok_ref & ok_cur
+        if np.count_nonzero(ok) < 0.3 * ok.size:
+            return 1.0  # mostly glare: nothing to compare (the glare test is elsewhere)
+        a, b = ref[ok], cur[ok]
+        a = a - a.mean()
+        b = b - b.mean()
+        e_ref = float(np.dot(a, a))
+        if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
+            return 1.0
+        den = math.sqrt(float(np.dot(b, b)) * e_ref)
+        return float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
@@ -735,6 +772,25 @@ class FeatureTracker(Tracker):
         if not self._in_view(est):
             self.stats["outside"] += 1  # left the field of view: cannot be measured any more
             return None
+        # The target's own patch must still look like the keyframe's: the surrounding features
+        # alone cannot tell that an instrument (or blood, smoke) now covers the target itself.
+        if key is not None:
+            ref, ref_to_frame = kf, aff.copy()  # the local affine: follows the lens distortion too
+        else:
+            ref = self._key
+            ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
+        ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
+        ncc = self._patch_similarity(view, ref, ref_to_frame)
+        if ncc < s.patch_reject_ncc:
+            self.stats["covered"] += 1
+            return None
+        conf *= min(1.0, ncc / s.patch_keyframe_ncc)
+        # One-sided support (inliers only on one side: the rest covered or out of view) is an
+        # extrapolation: less confident.
+        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
+        surrounded = bool(np.all(est > lo) and np.all(est < hi))
+        if not surrounded:
+            conf *= 0.5
         # Accept.
         self._chain_only = 0 if key is not None else self._chain_only + 1
         self._vel_known = not relock and self._misses == 0
@@ -757,9 +813,10 @@ class FeatureTracker(Tracker):
                      n_in < max(2 * s.min_inliers, 0.4 * len(kf.pts)))
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
-        # extrapolation, which drifts at the edge of the view).
+        # extrapolation, which drifts at the edge of the view), its own patch unchanged.
         lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        supported = bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+        supported = (bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+                     and ncc >= s.patch_keyframe_ncc)
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
