@@ -241,6 +241,9 @@ class TrackerSettings:
                                     doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
     patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
                                       doc="least target-patch correlation for full confidence and for making a keyframe")
+    patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
+                                      doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
+                                          "patch counts as covered")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -637,10 +640,12 @@ class FeatureTracker(Tracker):
         return np.array([dx, dy])
 
     def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> float:
-        """Normalised cross-correlation of the target's patch (side ~0.4 window) in keyframe ``kf``
-        and in ``view``, mapped by ``key_to_frame`` (3x3), both slightly smoothed (noise) and
-        without highlight pixels; 0 for a uniform (covered) patch, 1 when the keyframe's patch
-        itself is uniform (nothing to compare)."""
+        """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
+        ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
+        both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
+        texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
+        misregistered, not covered); 0 for a uniform patch, 1 when the keyframe's patch itself is
+        uniform or mostly glare (nothing to compare)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
@@ -650,7 +655,10 @@ class FeatureTracker(Tracker):
             g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
-            return cv2.GaussianBlur(g.astype(np.float32), (5, 5), 1.0), sat == 0
+            g = g.astype(np.float32)
+            # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
+            # fill of glints), which changes with the view and is not the target's appearance
+            return cv2.GaussianBlur(g, (5, 5), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0), sat == 0
 
         if kf.patch is None:
             kf.patch = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
@@ -665,8 +673,20 @@ class FeatureTracker(Tracker):
         e_ref = float(np.dot(a, a))
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
             return 1.0
-        den = math.sqrt(float(np.dot(b, b)) * e_ref)
-        return float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+        e_cur = float(np.dot(b, b))
+        den = math.sqrt(e_cur * e_ref)
+        ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+        # Decorrelated *and* with another texture energy, or with texture gone from part of the
+        # patch: something else is there (an instrument's edge adds structure, its smooth body
+        # removes it). Decorrelation at equal, evenly spread energy is only a slightly
+        # misregistered or blurred view of the same tissue.
+        box = (9, 9)
+        local = cv2.blur(cur * cur, box)[ok] / (cv2.blur(ref * ref, box)[ok] + 1.0)
+        vanished = float(np.mean(local < 0.1 * np.percentile(local, 90)))
+        if (1.0 / self.settings.patch_energy_ratio <= e_cur / e_ref <= self.settings.patch_energy_ratio
+                and vanished < 0.25):
+            return max(ncc, self.settings.patch_keyframe_ncc)
+        return ncc
 
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
