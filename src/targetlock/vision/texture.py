@@ -20,7 +20,8 @@ import numpy as np
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["mucosa_texture", "aruco_texture", "add_dot", "with_height", "ARUCO_DICTIONARIES", "texture_cache_dir"]
+__all__ = ["mucosa_texture", "aruco_texture", "add_dot", "with_height", "ARUCO_DICTIONARIES", "texture_cache_dir",
+           "photo_texture", "PHOTOS"]
 
 ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_APRILTAG_36h11")
 
@@ -245,3 +246,45 @@ def add_dot(texture: np.ndarray, point_m: tuple[float, float], size_m: tuple[flo
     if tex.shape[2] == 4:
         tex[v0 - r:v0 + r + 1, u0 - r:u0 + r + 1, 3] = 128
     return tex
+
+
+# Real photographs shipped inside the scikit-image wheel (no download at run time), with their
+# licences as scikit-image's skimage.data documents them.
+PHOTOS = {
+    "retina": "fundus photograph of a normal left eye, M. Haggstrom (Wikimedia Commons), CC0 1.0",
+    "coffee": "cup of coffee, Rachel Michetti, CC0",
+    "astronaut": "astronaut Eileen Collins, NASA Great Images, public domain",
+    "chelsea": "Chelsea the cat, Stefan van der Walt, CC0",
+    "rocket": "SpaceX Falcon 9 launch, SpaceX, public domain",
+}
+
+
+@lru_cache(maxsize=4)
+def photo_texture(name: str, size: int = 2048) -> np.ndarray:
+    """BGR+height texture (size x size x 4, uint8, read-only) of a real photograph from
+    scikit-image's bundled data (:data:`PHOTOS`, licences there). The largest centred square is
+    used (for ``retina``, the square inside the round fundus image), resized to ``size``; the
+    height channel is the smoothed brightness (glints form on the bright, raised parts)."""
+    if name not in PHOTOS:
+        raise ValueError(f"photo = {name!r}; allowed: {', '.join(PHOTOS)}")
+    if not 64 <= size <= 8192:
+        raise ValueError(f"size = {size} px; allowed: [64, 8192] px")
+    try:
+        import skimage.data
+    except ImportError as exc:  # optional: only the real-image evaluation needs it
+        raise ImportError("real-image textures need scikit-image: pip install 'scikit-image>=0.22,<1'") from exc
+    rgb = np.asarray(getattr(skimage.data, name)())
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    h, w = rgb.shape[:2]
+    side = min(h, w)
+    if name == "retina":  # the fundus is a disc on black: the square inscribed in it
+        side = int(side * 0.68)
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    bgr = cv2.cvtColor(np.ascontiguousarray(rgb[y0:y0 + side, x0:x0 + side, :3]), cv2.COLOR_RGB2BGR)
+    bgr = cv2.resize(bgr, (size, size), interpolation=cv2.INTER_CUBIC if size > side else cv2.INTER_AREA)
+    grey = cv2.GaussianBlur(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.float32), (0, 0), size / 256.0)
+    height = 16.0 + 239.0 * (grey - grey.min()) / max(float(np.ptp(grey)), 1e-6)
+    out = with_height(bgr, np.clip(height, 0, 255).astype(np.uint8))
+    out.setflags(write=False)
+    return out
