@@ -167,3 +167,14 @@ def test_a_slowly_covering_bar_makes_no_keyframe_and_lowers_the_confidence(rende
     partly = [conf[i] for i in covering if 0 < gap[i] <= 0.6 * patch_half]  # over a third of the patch covered
     assert min(clear) > 0.9 and max(partly) < 0.6, (clear, partly)
     assert all(conf[i] == 0.0 for i in conf if gap[i] < -15)   # target well under the bar: not reported
+
+
+@pytest.mark.parametrize("gain", [1.5, 0.5])
+def test_an_exposure_step_on_bright_tissue_keeps_the_lock(bright, sel_pose, gain):
+    """The light gain steps at frame 10 on bright tissue: a x1.5 step used to turn half the window
+    into "highlight" and lose the target for good."""
+    bright.reseed(4)
+    frames = _drift(bright, sel_pose, 24, light_gain=lambda i: 1.0 if i < 10 else gain)
+    res = _run(FeatureTracker(), frames)
+    errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
+    assert np.all(errs < 2.0), errs.round(2)
