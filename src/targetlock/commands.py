@@ -372,8 +372,9 @@ def _vision_eval(args: argparse.Namespace) -> int:
         settings = from_dict(EvalSettings, cli_overrides(args))
     except ConfigError as exc:
         raise ConfigError(errors=exc.errors, where="vision-eval options") from None
+    contents = 1 + (len(settings.photos) if settings.tracker != "marker" else 0)   # mucosa + each photograph
     with RunFolder("vision-eval", settings, args.out, overwrite=args.overwrite) as run:
-        with _progress(len(settings.sequences), "sequence") as bar:
+        with _progress(contents * len(settings.sequences), "sequence") as bar:
             def progress(line: str) -> None:
                 log.info("%s", line)
                 bar.update(1)
@@ -382,11 +383,20 @@ def _vision_eval(args: argparse.Namespace) -> int:
         summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
                    "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"],
                    "tracker": settings.tracker, "seed": opts.seed, "sequences": res["sequences"],
-                   "run_folder": str(run.path)}
+                   "content": res["content"], "references": res["references"],
+                   "selection_failures": o["selection_failures"], "run_folder": str(run.path)}
         run.write_summary(summary)
     print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames): "
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
+    for c, m in res["content"].items():
+        print(f"  {c:>9}: tracked {m['tracked_fraction']:.3f}, delta_avg {m['delta_avg']:.3f}, "
+              f"false locks {m['false_lock_fraction']:.3f}, selection failures {m['selection_failures']}")
+    for who, r in res["references"].items():
+        m = r["overall"]
+        print(f"  reference {who}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
+              f"delta_avg {m['delta_avg']:.3f}, false locks {m['false_lock_fraction']:.3f}, "
+              f"{m['fps']:.0f} fps (ours {m['speed_ratio']:.1f}x)")
     print(f"run folder: {run.path}")
     if args.json:
         print_json_last(summary)

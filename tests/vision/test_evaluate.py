@@ -50,14 +50,15 @@ def test_sequences_are_deterministic():
 
 
 def test_evaluate_short_run_is_json_ready_and_good():
-    cfg = EvalSettings(frames=24, sequences=("slow", "occlusion", "rotation"))
+    cfg = EvalSettings(frames=24, sequences=("slow", "occlusion", "rotation"), photos=(), references=())
     out = evaluate(cfg, seed=1)
     json.dumps(out)                                          # CLI --json
     o = out["overall"]
     assert set(out["sequences"]) == {"slow", "occlusion", "rotation"}
     assert o["frames"] == 3 * 23
     assert o["median_px"] < 1.0 and o["tracked_fraction"] >= 0.95 and o["false_lock_fraction"] == 0.0
-    assert o["fps"] > 50 and o["render_ms"] > 0
+    assert o["fps"] > 0 and o["render_ms"] > 0  # speed goals: `targetlock bench vision`, not a timed test
+    assert o["selection_failures"] == 0 and all(m["selection_failure"] is None for m in out["sequences"].values())
     for m in out["sequences"].values():
         assert m["selected"] and 0.0 <= m["delta_avg"] <= 1.0
 
@@ -68,3 +69,27 @@ def test_occlusion_sequence_really_occludes():
     assert 5 <= sum(hidden) <= 30 and not hidden[0] and not hidden[-1]
     leave = render_sequence("leave", EvalSettings(), seed=0)
     assert any(not f.visible and not f.occluded for f in leave) and leave[-1].visible
+
+
+def test_eval_settings_refuse_unknown_photos_and_references():
+    with pytest.raises(ConfigError, match="photos"):
+        validate(EvalSettings(photos=("holiday",)))
+    with pytest.raises(ConfigError, match="references"):
+        validate(EvalSettings(references=("magic",)))
+
+
+def test_real_photograph_sequences_with_reference_trackers_in_the_same_run():
+    """A real photograph (scikit-image's bundled retina, CC0) rendered with known ground truth; the
+    OpenCV references run on the very same frames and get the same metrics."""
+    cfg = EvalSettings(frames=30, sequences=("slow",), photos=("retina",), references=("mil", "lk"))
+    out = evaluate(cfg, seed=0)
+    json.dumps(out)
+    assert set(out["sequences"]) == {"slow", "retina/slow"}
+    assert set(out["content"]) == {"mucosa", "retina"} and "CC0" in out["photo_licences"]["retina"]
+    ret = out["content"]["retina"]
+    assert ret["tracked_fraction"] >= 0.95 and ret["false_lock_fraction"] == 0.0 and ret["median_px"] < 1.0
+    for who in ("mil", "lk"):
+        ref = out["references"][who]
+        assert ref["overall"]["frames"] == out["overall"]["frames"]          # the same frames
+        assert set(ref["content"]) == {"mucosa", "retina"} and ref["overall"]["speed_ratio"] > 0
+        assert out["overall"]["delta_avg"] >= ref["overall"]["delta_avg"]

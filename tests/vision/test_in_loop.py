@@ -42,5 +42,8 @@ def test_vision_eval_command(tmp_path, capsys):
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("median_px", "p95_px", "tracked_fraction", "delta_avg", "fps"):
         assert np.isfinite(s[key])
-    assert set(s["sequences"]) == {"slow", "occlusion"}
-    assert s["tracked_fraction"] > 0.9
+    # by default also on the real photographs, with the OpenCV references on the same frames
+    assert set(s["sequences"]) == {f"{p}{n}" for p in ("", "retina/", "coffee/") for n in ("slow", "occlusion")}
+    assert set(s["content"]) == {"mucosa", "retina", "coffee"} and set(s["references"]) == {"mil", "lk"}
+    assert s["content"]["mucosa"]["tracked_fraction"] > 0.9 and s["selection_failures"] == 0
+    assert all(m["false_lock_fraction"] == 0.0 for m in s["content"].values())

@@ -17,13 +17,14 @@ from .overlay import draw_overlay
 from .render import (Frame, PlanarTarget, Renderer, RenderSettings, endoscope_camera, interpolate_pose,
                      make_pose)
 from .sources import CaptureSource, FrameSource, RenderedSource, VideoFileSource, write_video
-from .texture import add_dot, aruco_texture, mucosa_texture
+from .reference import make_reference, reference_trackers
+from .texture import PHOTOS, add_dot, aruco_texture, mucosa_texture, photo_texture
 from .tracker import (FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings, TrackResult,
                       make_tracker, to_observation)
 
 __all__ = [
     "Renderer", "RenderSettings", "PlanarTarget", "Frame", "endoscope_camera", "make_pose", "interpolate_pose",
-    "mucosa_texture", "aruco_texture", "add_dot",
+    "mucosa_texture", "aruco_texture", "add_dot", "photo_texture", "PHOTOS", "reference_trackers", "make_reference",
     "Tracker", "TrackResult", "FeatureTracker", "TrackerSettings", "MarkerTracker", "MarkerSettings",
     "make_tracker", "to_observation",
     "FrameSource", "RenderedSource", "VideoFileSource", "CaptureSource", "write_video",

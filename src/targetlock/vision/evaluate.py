@@ -48,6 +48,8 @@ from ..config import param, validate
 from ..model.camera import CameraParams
 from ..model.kinematics import tip_pose
 from .render import Frame, PlanarTarget, Renderer, RenderSettings, endoscope_camera, make_pose
+from .reference import make_reference, reference_trackers
+from .texture import PHOTOS, photo_texture
 from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings
 
 __all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon"]
@@ -67,12 +69,18 @@ class EvalSettings:
     exposure_s: float = param(0.02, unit="s", lo=0.0, hi=1.0, doc="exposure time (motion blur)")
     threshold_px: float = param(8.0, unit="px", lo=0.1, hi=1000.0, doc="largest error of a frame that counts as tracked")
     distance_m: float = param(0.05, unit="m", lo=0.005, hi=1.0, doc="usual distance of the tissue from the tip")
+    photos: tuple[str, ...] = param(("retina", "coffee"), choices=None,
+                                    doc="real photographs (scikit-image's bundled data, see texture.PHOTOS) the "
+                                        "sequences are also rendered on, besides the procedural mucosa")
+    references: tuple[str, ...] = param(("mil", "lk"), choices=None,
+                                        doc="OpenCV reference trackers run on the same frames (reference.reference_trackers)")
 
     def check(self, prefix: str = "") -> None:
         from ..config import ConfigError
-        bad = [s for s in self.sequences if s not in SEQUENCES]
-        if bad:
-            raise ConfigError(f"{prefix}sequences: unknown {', '.join(bad)}; allowed: {', '.join(SEQUENCES)}")
+        for field, allowed in (("sequences", SEQUENCES), ("photos", tuple(PHOTOS)), ("references", reference_trackers())):
+            bad = [s for s in getattr(self, field) if s not in allowed]
+            if bad:
+                raise ConfigError(f"{prefix}{field}: unknown {', '.join(bad)}; allowed: {', '.join(allowed)}")
 
 
 # ---------------------------------------------------------------------------------- scenes
@@ -229,74 +237,111 @@ def _make(cfg: EvalSettings, tracker_settings, cam: CameraParams) -> Tracker:
     return FeatureTracker(tracker_settings if isinstance(tracker_settings, TrackerSettings) else None)
 
 
+def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: int, threshold_px: float) -> tuple:
+    """Select on frame 0, update on the rest (timed). Returns (metrics, results, t_all, t_locked, n_locked)."""
+    ok = tracker.select(frames[0].image, frames[0].truth_px, window_px)
+    results = []
+    dt = dt_lock = 0.0
+    n_lock = 0
+    for i, f in enumerate(frames[1:], 1):
+        locked = not tracker.lost
+        t0 = time.perf_counter()
+        results.append(tracker.update(f.image, i / fps))
+        t1 = time.perf_counter() - t0
+        dt += t1
+        if locked:
+            dt_lock += t1
+            n_lock += 1
+    m = score(frames[1:], results, threshold_px)
+    m["fps"] = (len(results) / dt) if dt > 0 else float("inf")
+    m["fps_locked"] = (n_lock / dt_lock) if dt_lock > 0 else float("nan")
+    m["selected"] = bool(ok)
+    m["selection_failure"] = tracker.failure
+    return m, results, dt, dt_lock, n_lock
+
+
 def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_settings=None,
              render_settings: RenderSettings | None = None, cam: CameraParams | None = None,
              progress: Callable[[str], None] | None = None) -> dict:
-    """Render every sequence of ``settings`` (deterministic in ``seed``), run the tracker, score it.
+    """Render every sequence of ``settings`` (deterministic in ``seed``) on the procedural mucosa
+    and on each real photograph of ``settings.photos``, run the tracker and the reference
+    trackers on the same frames, score them.
 
-    Returns a JSON-ready dict: ``overall`` (metrics pooled over all scored frames, plus ``fps``
-    and ``render_ms``), ``sequences`` (the same per sequence), ``settings`` and ``rules``.
-    The tracker is timed on one OpenCV thread (``fps`` counts only ``update`` calls).
+    Returns a JSON-ready dict: ``overall`` (the tracker's metrics pooled over all scored frames,
+    plus ``fps``, ``render_ms`` and ``selection_failures``), ``sequences`` (per sequence; keys
+    ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
+    ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
+    ``content``, with ``speed_ratio`` = the tracker's fps / the reference's), ``settings``, ``rules``.
+    Trackers are timed on one OpenCV thread (``fps`` counts only ``update`` calls).
     """
     cfg = validate(settings or EvalSettings())
     cam = cam or endoscope_camera()
     rs = render_settings or RenderSettings()
     if cfg.tracker == "marker":
-        target = PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px)
+        contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
     else:
-        target = PlanarTarget.mucosa(seed=seed, texture_px=rs.texture_px)
-    renderer = Renderer(cam, rs, target, seed=seed)
+        contents = [("mucosa", PlanarTarget.mucosa(seed=seed, texture_px=rs.texture_px))]
+        contents += [(ph, PlanarTarget((0.2, 0.2), photo_texture(ph), (0.0, 0.0))) for ph in cfg.photos]
+    renderer = Renderer(cam, rs, contents[0][1], seed=seed)
     threads = cv2.getNumThreads()
     per_seq: dict[str, dict] = {}
-    all_frames: list[Frame] = []
-    all_results: list = []
-    t_track = t_lock = 0.0
-    n_locked = 0
+    pooled: dict[tuple[str, str], list] = {}  # (tracker, content) -> [frames, results, t, t_lock, n_lock]
     t_render = 0.0
     n_render = 0
+    names = ("tracker", *cfg.references)
     try:
         cv2.setNumThreads(1)
-        for name in cfg.sequences:
-            t0 = time.perf_counter()
-            frames = render_sequence(name, cfg, seed=seed, cam=cam, render_settings=rs, target=target,
-                                     renderer=renderer)
-            t_render += time.perf_counter() - t0
-            n_render += len(frames)
-            tracker = _make(cfg, tracker_settings, cam)
-            ok = tracker.select(frames[0].image, frames[0].truth_px, cfg.window_px)
-            results = []
-            dt = dt_lock = 0.0
-            n_lock = 0
-            for f in frames[1:]:
-                locked = not getattr(tracker, "lost", False)
+        for content, target in contents:
+            renderer.set_target(target)
+            for name in cfg.sequences:
                 t0 = time.perf_counter()
-                results.append(tracker.update(f.image))
-                t1 = time.perf_counter() - t0
-                dt += t1
-                if locked:
-                    dt_lock += t1
-                    n_lock += 1
-            m = score(frames[1:], results, cfg.threshold_px)
-            m["fps"] = (len(results) / dt) if dt > 0 else float("inf")
-            m["fps_locked"] = (n_lock / dt_lock) if dt_lock > 0 else float("nan")
-            m["selected"] = bool(ok)
-            per_seq[name] = m
-            all_frames += frames[1:]
-            all_results += results
-            t_track += dt
-            t_lock += dt_lock
-            n_locked += n_lock
-            if progress:
-                progress(f"{name}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
-                         f"fps {m['fps']:.0f}")
+                frames = render_sequence(name, cfg, seed=seed, cam=cam, render_settings=rs, target=target,
+                                         renderer=renderer)
+                t_render += time.perf_counter() - t0
+                n_render += len(frames)
+                key = name if content == "mucosa" else f"{content}/{name}"
+                for who in names:
+                    tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
+                    m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
+                                                                   cfg.threshold_px)
+                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0])
+                    acc[0] += frames[1:]
+                    acc[1] += results
+                    acc[2] += dt
+                    acc[3] += dt_lock
+                    acc[4] += n_lock
+                    acc[5] += not m["selected"]
+                    if who == "tracker":
+                        per_seq[key] = m
+                        if progress:
+                            progress(f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
+                                     f"fps {m['fps']:.0f}")
     finally:
         cv2.setNumThreads(threads)
-    overall = score(all_frames, all_results, cfg.threshold_px)
-    overall["fps"] = len(all_results) / t_track if t_track > 0 else float("inf")
-    overall["fps_locked"] = n_locked / t_lock if t_lock > 0 else float("nan")
+
+    def pool(who: str, which: list[str]) -> dict:
+        accs = [pooled[(who, c)] for c in which]
+        frames = [f for a in accs for f in a[0]]
+        m = score(frames, [r for a in accs for r in a[1]], cfg.threshold_px)
+        t, t_lock, n_lock = sum(a[2] for a in accs), sum(a[3] for a in accs), sum(a[4] for a in accs)
+        m["fps"] = len(frames) / t if t > 0 else float("inf")
+        m["fps_locked"] = n_lock / t_lock if t_lock > 0 else float("nan")
+        m["selection_failures"] = int(sum(a[5] for a in accs))
+        return m
+
+    all_contents = [c for c, _ in contents]
+    overall = pool("tracker", all_contents)
     overall["render_ms"] = 1e3 * t_render / max(n_render, 1)
+    refs = {}
+    for who in cfg.references:
+        o = pool(who, all_contents)
+        o["speed_ratio"] = overall["fps"] / o["fps"] if o["fps"] > 0 else float("nan")
+        refs[who] = {"overall": o, "content": {c: pool(who, [c]) for c in all_contents}}
     cfg_d = asdict(cfg)
-    cfg_d["sequences"] = list(cfg.sequences)
-    return {"overall": overall, "sequences": per_seq, "settings": cfg_d, "seed": int(seed),
+    for k in ("sequences", "photos", "references"):
+        cfg_d[k] = list(getattr(cfg, k))
+    return {"overall": overall, "sequences": per_seq, "content": {c: pool("tracker", [c]) for c in all_contents},
+            "references": refs, "photo_licences": {c: PHOTOS[c] for c in all_contents if c in PHOTOS},
+            "settings": cfg_d, "seed": int(seed),
             "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
                      "the field of view): correct if not valid, or valid and error <= threshold"}

@@ -68,7 +68,7 @@ class VisionPipeline:
         if not self.selected:
             self.selected = True
             self.tracker.select(frame.image, frame.truth_px, self.window_px)
-        result = self.tracker.update(frame.image)
+        result = self.tracker.update(frame.image, t)
         t2 = time.perf_counter()
         self.render_seconds += t1 - t0
         self.track_seconds += t2 - t1

@@ -8,12 +8,20 @@ its centre at integer coordinates, u to the right, v down (OpenCV convention).
 """
 from __future__ import annotations
 
+import hashlib
+import logging
+import os
+import tempfile
 from functools import lru_cache
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-__all__ = ["mucosa_texture", "aruco_texture", "add_dot", "with_height", "ARUCO_DICTIONARIES"]
+_log = logging.getLogger(__name__)
+
+__all__ = ["mucosa_texture", "aruco_texture", "add_dot", "with_height", "ARUCO_DICTIONARIES", "texture_cache_dir",
+           "photo_texture", "PHOTOS"]
 
 ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_APRILTAG_36h11")
 
@@ -70,8 +78,65 @@ def _vessel_layer(rng: np.random.Generator, size: int, n_trees: int, width: tupl
     return mask
 
 
+def texture_cache_dir() -> Path | None:
+    """Folder of the on-disk texture cache, or None when disabled.
+
+    ``$TARGETLOCK_CACHE_DIR`` if set (empty or ``off``: no disk cache), else
+    ``$XDG_CACHE_HOME/targetlock`` (``~/.cache/targetlock``; ``%LOCALAPPDATA%\\targetlock`` on Windows).
+    """
+    env = os.environ.get("TARGETLOCK_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or (os.environ.get("LOCALAPPDATA") if os.name == "nt" else None)
+    return (Path(base) if base else Path.home() / ".cache") / "targetlock"
+
+
+@lru_cache(maxsize=1)
+def _generator_key() -> str:
+    """Changes whenever the generator or the libraries it relies on change (stale files are ignored)."""
+    h = hashlib.sha256(Path(__file__).read_bytes())
+    h.update(f"numpy {np.__version__} opencv {cv2.__version__}".encode())
+    return h.hexdigest()[:16]
+
+
+def _disk_cached(name: str, shape: tuple[int, ...], make) -> np.ndarray:
+    """``make()`` through an .npy file ``name`` in :func:`texture_cache_dir` (generated once per
+    machine: a 4096^2 mucosa takes seconds, loading it ~0.1 s). Any cache problem (unwritable
+    folder, corrupt file) falls back to generating."""
+    folder = texture_cache_dir()
+    path = None if folder is None else folder / f"{name}-{_generator_key()}.npy"
+    if path is not None and path.is_file():
+        try:
+            arr = np.load(path, allow_pickle=False)
+            if arr.shape == shape and arr.dtype == np.uint8:
+                return arr
+            _log.warning("texture cache %s has the wrong shape; regenerating", path)
+        except (OSError, ValueError) as exc:
+            _log.warning("texture cache %s unreadable (%s); regenerating", path, exc)
+    arr = make()
+    if path is not None:
+        tmp = None
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
+            with os.fdopen(fd, "wb") as fh:
+                np.save(fh, arr, allow_pickle=False)
+            os.replace(tmp, path)  # atomic: a parallel run never reads half a file
+        except OSError as exc:
+            _log.info("texture cache %s not written (%s)", folder, exc)
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+    return arr
+
+
 @lru_cache(maxsize=4)
 def _mucosa_cached(seed: int, size: int) -> np.ndarray:
+    out = _disk_cached(f"mucosa-{seed}-{size}", (size, size, 4), lambda: _mucosa_generate(seed, size))
+    out.setflags(write=False)
+    return out
+
+
+def _mucosa_generate(seed: int, size: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     s = size / 2048.0
     low = _fractal(rng, size, (3, 6, 12), 0.6)
@@ -96,7 +161,6 @@ def _mucosa_cached(seed: int, size: int) -> np.ndarray:
     height = 0.8 * mid + 0.12 * fine + 0.08 * cap  # smooth relief: glints form blobs, not dust
     height = (height - height.min()) / max(float(np.ptp(height)), 1e-6)
     out[..., 3] = np.clip(16.0 + height * 239.0, 0, 255).astype(np.uint8)  # >= 16: glossy everywhere
-    out.setflags(write=False)
     return out
 
 
@@ -105,7 +169,8 @@ def mucosa_texture(seed: int = 0, size: int = 2048) -> np.ndarray:
 
     Pink-red base with low-frequency colour variation, mottling, a fine granular pattern,
     bluish deep vessels and sharp red capillaries; the height channel drives specular glints.
-    The result is cached and read-only; copy it before drawing on it.
+    The result is cached in memory and on disk (:func:`texture_cache_dir`, keyed by seed, size
+    and generator version) and read-only; copy it before drawing on it.
     """
     if not 64 <= size <= 8192:
         raise ValueError(f"size = {size} px; allowed: [64, 8192] px")
@@ -181,3 +246,45 @@ def add_dot(texture: np.ndarray, point_m: tuple[float, float], size_m: tuple[flo
     if tex.shape[2] == 4:
         tex[v0 - r:v0 + r + 1, u0 - r:u0 + r + 1, 3] = 128
     return tex
+
+
+# Real photographs shipped inside the scikit-image wheel (no download at run time), with their
+# licences as scikit-image's skimage.data documents them.
+PHOTOS = {
+    "retina": "fundus photograph of a normal left eye, M. Haggstrom (Wikimedia Commons), CC0 1.0",
+    "coffee": "cup of coffee, Rachel Michetti, CC0",
+    "astronaut": "astronaut Eileen Collins, NASA Great Images, public domain",
+    "chelsea": "Chelsea the cat, Stefan van der Walt, CC0",
+    "rocket": "SpaceX Falcon 9 launch, SpaceX, public domain",
+}
+
+
+@lru_cache(maxsize=4)
+def photo_texture(name: str, size: int = 2048) -> np.ndarray:
+    """BGR+height texture (size x size x 4, uint8, read-only) of a real photograph from
+    scikit-image's bundled data (:data:`PHOTOS`, licences there). The largest centred square is
+    used (for ``retina``, the square inside the round fundus image), resized to ``size``; the
+    height channel is the smoothed brightness (glints form on the bright, raised parts)."""
+    if name not in PHOTOS:
+        raise ValueError(f"photo = {name!r}; allowed: {', '.join(PHOTOS)}")
+    if not 64 <= size <= 8192:
+        raise ValueError(f"size = {size} px; allowed: [64, 8192] px")
+    try:
+        import skimage.data
+    except ImportError as exc:  # optional: only the real-image evaluation needs it
+        raise ImportError("real-image textures need scikit-image: pip install 'scikit-image>=0.22,<1'") from exc
+    rgb = np.asarray(getattr(skimage.data, name)())
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    h, w = rgb.shape[:2]
+    side = min(h, w)
+    if name == "retina":  # the fundus is a disc on black: the square inscribed in it
+        side = int(side * 0.68)
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    bgr = cv2.cvtColor(np.ascontiguousarray(rgb[y0:y0 + side, x0:x0 + side, :3]), cv2.COLOR_RGB2BGR)
+    bgr = cv2.resize(bgr, (size, size), interpolation=cv2.INTER_CUBIC if size > side else cv2.INTER_AREA)
+    grey = cv2.GaussianBlur(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.float32), (0, 0), size / 256.0)
+    height = 16.0 + 239.0 * (grey - grey.min()) / max(float(np.ptp(grey)), 1e-6)
+    out = with_height(bgr, np.clip(height, 0, 255).astype(np.uint8))
+    out.setflags(write=False)
+    return out

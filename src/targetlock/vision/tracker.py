@@ -48,7 +48,7 @@ from ..model.camera import CameraParams, project, unproject
 from ..rig.base import Observation
 from .texture import ARUCO_DICTIONARIES
 
-__all__ = ["TrackResult", "Tracker", "TrackerSettings", "FeatureTracker", "MarkerSettings", "MarkerTracker",
+__all__ = ["TrackResult", "Tracker", "FrameClock", "TrackerSettings", "FeatureTracker", "MarkerSettings", "MarkerTracker",
            "make_tracker", "to_observation", "field_of_view_mask"]
 
 
@@ -81,15 +81,22 @@ def to_observation(result: TrackResult, capture_time: float, cx: float, cy: floa
 class Tracker(abc.ABC):
     """Common interface of all trackers."""
 
+    lost: bool = True
+    """The target is lost (not selected yet, or missed too long): the tracker is searching."""
+    failure: str | None = None
+    """Why the last :meth:`select` failed (one line a console can show), None after a success."""
+
     @abc.abstractmethod
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         """Choose the target at ``point_px`` (x, y px) using a square template of side
         ``window_px`` px around it. Returns False when the region holds too little structure
-        to track (the tracker is then lost)."""
+        to track (the tracker is then lost; :attr:`failure` says why)."""
 
     @abc.abstractmethod
-    def update(self, frame_bgr: np.ndarray) -> TrackResult:
-        """Track the target into ``frame_bgr`` (the next frame, BGR uint8)."""
+    def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
+        """Track the target into ``frame_bgr`` (the next frame, BGR uint8). ``capture_time`` (s, any
+        monotonic clock): when given, motion prediction and jump limits follow the real interval
+        since the last frame (dropped frames); else frames are taken as evenly spaced."""
 
 
 def field_of_view_mask(frame_bgr: np.ndarray, margin_px: int = 6, threshold: int = 12) -> np.ndarray:
@@ -113,6 +120,36 @@ def field_of_view_mask(frame_bgr: np.ndarray, margin_px: int = 6, threshold: int
     (cx, cy), r = cv2.minEnclosingCircle(max(contours, key=cv2.contourArea))
     cv2.circle(mask, (int(round(cx)), int(round(cy))), max(0, int(r) - margin_px), 255, -1)
     return mask
+
+
+class FrameClock:
+    """Frame intervals between successive frames from their capture times (dropped frames).
+
+    :meth:`tick` returns how many typical frame intervals lie between the previous frame and this
+    one: 1 normally, ~2 after one dropped frame. Without (finite, increasing) capture times every
+    frame counts as one interval. The typical interval follows the observed ones slowly and a
+    long interval only a little (a drop is not the new normal).
+    """
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self._t: float | None = None   # capture time of the last frame (s)
+        self.interval_s: float | None = None  # typical frame interval (s)
+
+    def tick(self, capture_time: float | None) -> float:
+        t = math.nan if capture_time is None else float(capture_time)
+        if self._t is None or not math.isfinite(t) or t <= self._t:
+            self._t = t if math.isfinite(t) else None
+            return 1.0
+        dt, self._t = t - self._t, t
+        if self.interval_s is None:
+            self.interval_s = dt
+            return 1.0
+        steps = max(1.0, dt / self.interval_s)
+        self.interval_s = 0.9 * self.interval_s + 0.1 * min(dt, 1.5 * self.interval_s)
+        return steps
 
 
 # ----------------------------------------------------------------------------- 2-D transforms
@@ -192,7 +229,21 @@ class TrackerSettings:
     highlight_margin_px: int = param(3, unit="px", lo=0, hi=50,
                                      doc="highlights are grown by this margin before masking and filling")
     saturation_level: int = param(190, lo=1, hi=255,
-                                  doc="8-bit level from which a pixel bright in gray and in blue counts as specular highlight")
+                                  doc="least 8-bit gray level of a highlight (raised towards 250 on bright tissue: "
+                                      "mean + 3 std of the region)")
+    highlight_max_chroma: float = param(0.25, lo=0.0, hi=1.0,
+                                        doc="largest colour saturation (1 - min/max of B, G, R) of a highlight pixel")
+    highlight_max_blob_px: int = param(1500, unit="px", lo=1, hi=1000000,
+                                       doc="largest bright blob that is a glint; larger bright areas: only clipped pixels")
+    highlight_max_share: float = param(0.25, lo=0.0, hi=1.0,
+                                       doc="largest share of a region masked as highlight (the brightest are kept)")
+    patch_reject_ncc: float = param(0.2, lo=-1.0, hi=1.0,
+                                    doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
+    patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
+                                      doc="least target-patch correlation for full confidence and for making a keyframe")
+    patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
+                                      doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
+                                          "patch counts as covered")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -223,6 +274,7 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
+    patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -246,21 +298,59 @@ class FeatureTracker(Tracker):
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
-                      "inconsistent": 0, "outside": 0, "corrections": 0}
+                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
+        self._clock = FrameClock()
+        self.selection: dict | None = None
+        """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
     # ------------------------------------------------------------------ views
-    def _highlights(self, bgr: np.ndarray, gray: np.ndarray) -> np.ndarray:
-        """Specular highlights (bool), grown by ``highlight_margin_px``: white pixels, i.e. bright
-        in gray and in blue, which reddish tissue never is."""
-        lvl = self.settings.saturation_level - 1
-        _, sat = cv2.threshold(gray, lvl, 255, cv2.THRESH_BINARY)
+    def _highlights(self, bgr: np.ndarray, gray: np.ndarray, fov: np.ndarray) -> np.ndarray:
+        """Specular highlights (bool) of a region, grown by ``highlight_margin_px``.
+
+        A glint is near-saturated, white and a small local blob; pale but textured tissue is bright
+        too, so brightness alone is not enough. Candidates: gray >= ``saturation_level`` and colour
+        saturation <= ``highlight_max_chroma`` (reddish tissue is never white). A connected blob of
+        candidates is a glint (with its halo) when it has at most ``highlight_max_blob_px`` pixels
+        and reaches near saturation relative to the region's exposure (mean + 3 std of its gray,
+        within [200, 245]); elsewhere only clipped pixels (>= 250, no texture left) are. The masked
+        share of the region is capped at ``highlight_max_share`` (the brightest pixels are kept),
+        so a bright frame never masks the target away.
+        """
+        s = self.settings
+        mean, std = cv2.meanStdDev(gray, mask=fov)
+        peak = min(245.0, max(200.0, float(mean[0, 0]) + 3.0 * float(std[0, 0])))
+        _, cand = cv2.threshold(gray, s.saturation_level - 1, 255, cv2.THRESH_BINARY)
+        cand = cv2.bitwise_and(cand, fov)
+        out = np.zeros(gray.shape, np.uint8)
+        x, y, w, h = cv2.boundingRect(cand)
+        if w == 0:
+            return out.view(bool)
+        box = (slice(y, y + h), slice(x, x + w))  # the rest only where there are candidates
+        c, g = cand[box], gray[box]
         if bgr.ndim == 3:
-            _, blue = cv2.threshold(cv2.extractChannel(bgr, 0), lvl, 255, cv2.THRESH_BINARY)
-            sat = cv2.bitwise_and(sat, blue)
-        return cv2.dilate(sat, self._dilate) > 0
+            ch = cv2.split(bgr[box])
+            lo, hi = cv2.min(cv2.min(ch[0], ch[1]), ch[2]), cv2.max(cv2.max(ch[0], ch[1]), ch[2])
+            # colour saturation 1 - lo/hi <= highlight_max_chroma
+            white = lo.astype(np.float32) >= (1.0 - s.highlight_max_chroma) * hi.astype(np.float32)
+            c = np.where(white, c, np.uint8(0))
+        n, labels, st, _ = cv2.connectedComponentsWithStats(c, connectivity=8, ltype=cv2.CV_16U)
+        glint = np.zeros(n, bool)  # small blobs that reach near saturation
+        glint[labels[(c > 0) & (g >= peak)]] = True
+        glint &= st[:, cv2.CC_STAT_AREA] <= s.highlight_max_blob_px
+        glint[0] = False
+        sat = (glint[labels] if n > 1 else np.zeros(c.shape, bool)) | ((c > 0) & (g >= 250))
+        n_sat = int(np.count_nonzero(sat))
+        n_fov = int(np.count_nonzero(fov))
+        if n_sat > s.highlight_max_share * n_fov:  # keep the brightest, up to the cap
+            k = int(s.highlight_max_share * n_fov)
+            vals = g[sat]
+            q = np.partition(vals, len(vals) - k - 1)[len(vals) - k - 1] if k > 0 else 256
+            sat &= g > q
+        out[box] = sat.view(np.uint8)
+        return cv2.dilate(out, self._dilate) > 0
 
     def _normalise(self, raw: np.ndarray, fov: np.ndarray, sat: np.ndarray, to_frame: np.ndarray) -> _View:
         """Normalised gray (mean 128, fixed contrast, statistics over tissue only), neutral outside
@@ -295,8 +385,8 @@ class FeatureTracker(Tracker):
         y0 = int(min(max(0, round(centre[1] - side / 2)), h - side))
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
-        return self._normalise(raw, self._fov[y0:y0 + side, x0:x0 + side], self._highlights(bgr, raw),
-                               _translation((x0, y0)))
+        fov = self._fov[y0:y0 + side, x0:x0 + side]
+        return self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0)))
 
     def _warp(self, base: _View, local_to_frame: np.ndarray) -> _View:
         """The preprocessed region ``base`` resampled through ``local_to_frame`` (3x3), so it lines
@@ -312,8 +402,10 @@ class FeatureTracker(Tracker):
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return self._normalise(raw, fov, sat, local_to_frame.copy())
 
-    def _features(self, view: _View, centre: np.ndarray, half: float) -> np.ndarray:
-        """Corners (frame px) within a square of half-side ``half`` px around ``centre`` in a crop view."""
+    def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
+                  masked: bool = True) -> np.ndarray:
+        """Corners (frame px) within a square of half-side ``half`` px around ``centre`` in a crop view
+        (``quality``: goodFeaturesToTrack level, default the setting; ``masked``: not on highlights)."""
         s = self.settings
         h, w = view.gray.shape
         off = view.to_frame[:2, 2]
@@ -325,9 +417,10 @@ class FeatureTracker(Tracker):
         mask = np.zeros((h, w), np.uint8)
         ox, oy = int(off[0]), int(off[1])
         mask[y0:y1, x0:x1] = self._fov[oy + y0:oy + y1, ox + x0:ox + x1]
-        mask[view.sat] = 0
-        pts = cv2.goodFeaturesToTrack(view.gray, s.max_features, s.feature_quality, s.min_feature_distance_px,
-                                      mask=mask, blockSize=5)
+        if masked:
+            mask[view.sat] = 0
+        pts = cv2.goodFeaturesToTrack(view.gray, s.max_features, quality or s.feature_quality,
+                                      s.min_feature_distance_px, mask=mask, blockSize=5)
         if pts is None:
             return np.zeros((0, 2), np.float32)
         return pts.reshape(-1, 2) + off.astype(np.float32)
@@ -397,7 +490,7 @@ class FeatureTracker(Tracker):
         gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         mask = self._fov[y0:y1, x0:x1].copy()
         if bgr.ndim == 3:
-            mask[self._highlights(bgr, gray)] = 0
+            mask[self._highlights(bgr, gray, mask)] = 0
         grid = (max(1, round((x1 - x0) / 90)), max(1, round((y1 - y0) / 72)))
         clahe = self._clahe.get(grid)
         if clahe is None:
@@ -419,8 +512,9 @@ class FeatureTracker(Tracker):
         return pts[near], desc[near]
 
     def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
-                       from_anchor: np.ndarray) -> _Keyframe | None:
-        pts = self._features(view, target, 0.5 * self._window)
+                       from_anchor: np.ndarray, pts: np.ndarray | None = None) -> _Keyframe | None:
+        if pts is None:
+            pts = self._features(view, target, 0.5 * self._window)
         if len(pts) < self.settings.min_inliers:
             return None
         kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor)
@@ -431,27 +525,48 @@ class FeatureTracker(Tracker):
 
     # -------------------------------------------------------------------- API
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
+        """Select the target; when the window holds too few usable corners, fall back in turn to a
+        1.5x and 2x larger window, to a 10x lower corner quality level, and to corners on
+        highlights too. ``failure`` says why it still failed; ``selection`` how it succeeded."""
         s = self.settings
         if not 8 <= int(window_px) <= 2048:
             raise ValueError(f"window_px = {window_px}; allowed: [8, 2048] px")
-        self._window = float(window_px)
-        self._fov = field_of_view_mask(frame_bgr, margin_px=s.lk_window_px // 2 + 2)
-        k = max(3, int(self._window // 2) | 1)
-        self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
-        p = np.asarray(point_px, float).reshape(2)
-        self._pos = p.copy()
-        self._vel = np.zeros(2)
-        self._vel_known = False
-        self._misses = 0
-        self.lost = True
+        self.failure = None
+        self.selection = None
         self._anchor = None
-        self._recent: deque[_Keyframe] = deque(maxlen=s.keyframes)
-        self._side = int(min(frame_bgr.shape[0], frame_bgr.shape[1],
-                             math.ceil(1.3 * self._window + 2 * (s.search_margin_px + s.lk_window_px // 2 + 1))))
-        self._hann = None
-        view = self._crop(frame_bgr, p)
-        kf = self._make_keyframe(frame_bgr, view, p, np.eye(3))
-        if kf is None:
+        self.lost = True
+        self._fov = field_of_view_mask(frame_bgr, margin_px=s.lk_window_px // 2 + 2)
+        p = np.asarray(point_px, float).reshape(2)
+        h, w = frame_bgr.shape[:2]
+        if not np.all(np.isfinite(p)) or not (0 <= p[0] < w and 0 <= p[1] < h):
+            self.failure = f"point {p.round(1).tolist()} px is outside the {w}x{h} image"
+            return False
+        if not self._fov.any():
+            self.failure = "no image content: the frame is dark (no field of view found)"
+            return False
+        self._pos = p.copy()
+        if not self._in_view(p):
+            self.failure = "point is outside the endoscope's field of view (or on its edge)"
+            return False
+        best = 0
+        attempts = [(1.0, None, True), (1.5, None, True), (2.0, None, True),
+                    (2.0, 0.1 * s.feature_quality, True), (2.0, 0.1 * s.feature_quality, False)]
+        for grow, quality, masked in attempts:
+            self._setup_window(frame_bgr, min(2048.0, grow * float(window_px)))
+            view = self._crop(frame_bgr, p)
+            pts = self._features(view, p, 0.5 * self._window, quality, masked)
+            best = max(best, len(pts))
+            if len(pts) >= s.min_inliers:
+                kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
+                self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
+                                  "highlights_masked": masked, "features": len(pts)}
+                break
+        else:
+            sat = float(view.sat.mean())
+            why = (f"{sat:.0%} of the region is saturated or glare" if sat > 0.3 else
+                   "the region is featureless (too little texture)")
+            self.failure = (f"too few trackable corners around the point ({best} < {s.min_inliers}) even in a "
+                            f"{self._window:.0f} px window: {why}")
             return False
         self._anchor = self._key = kf
         self._from_anchor = np.eye(3)   # anchor frame -> last accepted frame (similarity)
@@ -459,6 +574,21 @@ class FeatureTracker(Tracker):
         self._prev_pts = kf.pts.copy()  # ... and the features to follow from it
         self.lost = False
         return True
+
+    def _setup_window(self, frame_bgr: np.ndarray, window_px: float) -> None:
+        s = self.settings
+        self._window = float(window_px)
+        k = max(3, int(self._window // 2) | 1)
+        self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
+        self._vel = np.zeros(2)
+        self._vel_known = False
+        self._misses = 0
+        self._recent: deque[_Keyframe] = deque(maxlen=s.keyframes)
+        self._side = int(min(frame_bgr.shape[0], frame_bgr.shape[1],
+                             math.ceil(1.3 * self._window + 2 * (s.search_margin_px + s.lk_window_px // 2 + 1))))
+        self._hann = None
+        self._clock.reset()
+        self._steps = 1.0             # frame intervals from the last frame to this one
 
     def _close(self, kf: _Keyframe, anchor_to_pred: np.ndarray, frac: float) -> bool:
         """The predicted view differs from keyframe ``kf`` by less than ``frac`` of the renewal limits."""
@@ -509,17 +639,67 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> float:
+        """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
+        ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
+        both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
+        texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
+        misregistered, not covered); 0 for a uniform patch, 1 when the keyframe's patch itself is
+        uniform or mostly glare (nothing to compare)."""
+        half = max(7, int(round(0.2 * self._window)))
+        side = 2 * half + 1
+        to_patch = _translation(kf.target - half)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+
+        def sample(v: _View, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_REPLICATE)
+            g = g.astype(np.float32)
+            # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
+            # fill of glints), which changes with the view and is not the target's appearance
+            return cv2.GaussianBlur(g, (5, 5), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0), sat == 0
+
+        if kf.patch is None:
+            kf.patch = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+        ref, ok_ref = kf.patch
+        cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+        ok = ok_ref & ok_cur
+        if np.count_nonzero(ok) < 0.3 * ok.size:
+            return 1.0  # mostly glare: nothing to compare (the glare test is elsewhere)
+        a, b = ref[ok], cur[ok]
+        a = a - a.mean()
+        b = b - b.mean()
+        e_ref = float(np.dot(a, a))
+        if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
+            return 1.0
+        e_cur = float(np.dot(b, b))
+        den = math.sqrt(e_cur * e_ref)
+        ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+        # Decorrelated *and* with another texture energy, or with texture gone from part of the
+        # patch: something else is there (an instrument's edge adds structure, its smooth body
+        # removes it). Decorrelation at equal, evenly spread energy is only a slightly
+        # misregistered or blurred view of the same tissue.
+        box = (9, 9)
+        local = cv2.blur(cur * cur, box)[ok] / (cv2.blur(ref * ref, box)[ok] + 1.0)
+        vanished = float(np.mean(local < 0.1 * np.percentile(local, 90)))
+        if (1.0 / self.settings.patch_energy_ratio <= e_cur / e_ref <= self.settings.patch_energy_ratio
+                and vanished < 0.25):
+            return max(ncc, self.settings.patch_keyframe_ncc)
+        return ncc
+
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
         return self._motion(ksrc, kdst, kf.target), ksrc, kdst
 
-    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+    def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
         self.stats["frames"] += 1
         if self._anchor is None:
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        self._steps = self._clock.tick(capture_time)
         if self.lost:
             self._lost_frames += 1
             res = self._track(frame_bgr, relock=True)
@@ -545,7 +725,8 @@ class FeatureTracker(Tracker):
         """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
         target is lost and this is a cheap local attempt (keyframe evidence required)."""
         s = self.settings
-        pred = self._pos + self._vel
+        steps = self._steps
+        pred = self._pos + self._vel * steps  # velocity in px per typical frame interval
         tried_shift = False
         if not relock and not self._vel_known:
             # No velocity yet (just selected or re-acquired): predict by phase correlation.
@@ -605,16 +786,35 @@ class FeatureTracker(Tracker):
             next_pts = dst[inl]
         else:
             return None
-        if np.hypot(*(est - pred)) > s.max_jump_px * (3.0 if relock else 1.0):
+        if np.hypot(*(est - pred)) > s.max_jump_px * (3.0 if relock else steps):
             self.stats["false_jumps"] += 1  # moved too far from the prediction: not believed
             return None
         if not self._in_view(est):
             self.stats["outside"] += 1  # left the field of view: cannot be measured any more
             return None
+        # The target's own patch must still look like the keyframe's: the surrounding features
+        # alone cannot tell that an instrument (or blood, smoke) now covers the target itself.
+        if key is not None:
+            ref, ref_to_frame = kf, aff.copy()  # the local affine: follows the lens distortion too
+        else:
+            ref = self._key
+            ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
+        ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
+        ncc = self._patch_similarity(view, ref, ref_to_frame)
+        if ncc < s.patch_reject_ncc:
+            self.stats["covered"] += 1
+            return None
+        conf *= min(1.0, ncc / s.patch_keyframe_ncc)
+        # One-sided support (inliers only on one side: the rest covered or out of view) is an
+        # extrapolation: less confident.
+        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
+        surrounded = bool(np.all(est > lo) and np.all(est < hi))
+        if not surrounded:
+            conf *= 0.5
         # Accept.
         self._chain_only = 0 if key is not None else self._chain_only + 1
         self._vel_known = not relock and self._misses == 0
-        self._vel = (est - self._pos) if self._vel_known else np.zeros(2)
+        self._vel = (est - self._pos) / steps if self._vel_known else np.zeros(2)
         self._pos = est
         self._misses = 0
         self.lost = False
@@ -633,9 +833,10 @@ class FeatureTracker(Tracker):
                      n_in < max(2 * s.min_inliers, 0.4 * len(kf.pts)))
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
-        # extrapolation, which drifts at the edge of the view).
+        # extrapolation, which drifts at the edge of the view), its own patch unchanged.
         lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        supported = bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+        supported = (bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+                     and ncc >= s.patch_keyframe_ncc)
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
@@ -741,6 +942,7 @@ class MarkerTracker(Tracker):
         self._size = 0.0
         self._misses = 0
         self.lost = True
+        self._clock = FrameClock()
 
     def _detect(self, frame: np.ndarray, roi=None) -> dict[int, np.ndarray]:
         if roi is None:
@@ -778,9 +980,13 @@ class MarkerTracker(Tracker):
         p = np.asarray(point_px, float).reshape(2)
         found = self._detect(frame_bgr)
         self.lost = True
+        self.failure = None
+        self._clock.reset()
         if self.settings.marker_id >= 0:
             found = {k: v for k, v in found.items() if k == self.settings.marker_id}
         if not found:
+            self.failure = ("no ArUco marker found" if self.settings.marker_id < 0
+                            else f"marker {self.settings.marker_id} not found")
             return False
         # The marker containing the point, else the nearest centre within the window.
         def dist(c):
@@ -789,6 +995,7 @@ class MarkerTracker(Tracker):
         mid, corners = min(found.items(), key=lambda kv: dist(kv[1]))
         if cv2.pointPolygonTest(corners.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])), False) < 0 \
                 and np.hypot(*(corners.mean(0) - p)) > window_px:
+            self.failure = f"no marker within {window_px} px of the point"
             return False
         hinv = cv2.getPerspectiveTransform(self._undistorted(corners).astype(np.float32), self._UNIT)
         self._offset = cv2.perspectiveTransform(self._undistorted(p).reshape(1, 1, 2).astype(np.float32),
@@ -801,14 +1008,16 @@ class MarkerTracker(Tracker):
         self.lost = False
         return True
 
-    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+    def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
         if self._id is None:
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
+        steps = self._clock.tick(capture_time)
         corners = None
+        vel = self._vel * steps  # px per typical frame interval, over the real interval
         if not self.lost:
-            pred = self._pos + self._vel
-            half = self._size + s.search_margin_px + float(np.hypot(*self._vel))
+            pred = self._pos + vel
+            half = self._size + s.search_margin_px + float(np.hypot(*vel))
             h, w = frame_bgr.shape[:2]
             roi = (int(max(0, pred[0] - half)), int(max(0, pred[1] - half)),
                    int(min(w, pred[0] + half + 1)), int(min(h, pred[1] + half + 1)))
@@ -818,9 +1027,9 @@ class MarkerTracker(Tracker):
             corners = self._detect(frame_bgr).get(self._id)
         if corners is not None:
             est = self._point(corners)
-            pred = self._pos + self._vel
-            if self.lost or np.hypot(*(est - pred)) <= s.max_jump_px:
-                self._vel = est - self._pos if (not self.lost and self._misses == 0) else np.zeros(2)
+            pred = self._pos + vel
+            if self.lost or np.hypot(*(est - pred)) <= s.max_jump_px * steps:
+                self._vel = (est - self._pos) / steps if (not self.lost and self._misses == 0) else np.zeros(2)
                 self._pos = est
                 self._size = float(np.sqrt(cv2.contourArea(corners.astype(np.float32))))
                 self._misses = 0
