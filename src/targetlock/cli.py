@@ -320,9 +320,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     from .experiments.runfolder import RunFolder
+    from .loop.signals import StopSignal, stop_on_signals
     RunFolder.latest = None
     try:
-        return COMMANDS[args.command][2](args)
+        with stop_on_signals():       # SIGTERM and SIGHUP end a command like Ctrl-C
+            return COMMANDS[args.command][2](args)
+    except StopSignal as exc:
+        kept = f"; data and summary kept in {RunFolder.latest}" if RunFolder.latest is not None else ""
+        print(f"targetlock {args.command}: stopped by {exc.signal_name}{kept}", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         print(f"targetlock {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -62,7 +62,7 @@ def test_a_real_process_stopped_by_a_signal_keeps_its_data_and_writes_the_summar
             proc.kill()
     assert proc.returncode == 128 + sig, stderr[-2000:]
     assert f"stopped by {sig.name}" in stdout
-    assert "drives disabled (confirmed by the drives)" in stderr        # the clear message
+    assert "drives disabled (confirmed by the drives)" in (out / "run.log").read_text()   # the clear message
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stopped"] == sig.name and summary["drives_disabled"] is True
     data = np.loadtxt(out / "timeseries.csv", delimiter=",", skiprows=1, ndmin=2)
