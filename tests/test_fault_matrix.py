@@ -38,7 +38,7 @@ def fail(argv: list[str], capsys, code: int) -> str:
 
 # ------------------------------------------------------------------------------------------ option values
 @pytest.mark.parametrize("argv, names", [
-    (["step-response", "--i-values", "-5"], ["controller.i_gain = -5.0", "allowed: [0.0, 100000.0]"]),
+    (["step-response", "--i-values", "-5"], ["controller.i_gain = -5.0", "allowed: [-1.0, 100000.0]"]),
     (["step-response", "--i-values", "0"], ["controller.i_gain and controller.p_gain are both 0"]),
     (["step-response", "--i-values", "1e9"], ["controller.i_gain = 1000000000.0", "allowed"]),
     (["hysteresis", "--speed", "0"], ["sweep_speed_deg_s = 0.0", "[0.1, 90.0] deg/s"]),

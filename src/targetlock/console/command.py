@@ -4,22 +4,21 @@ from __future__ import annotations
 import argparse
 import logging
 
-from ..cli import command
-from ..controllers.base import CONTROLLERS
-from ..model.twin import PRESETS
-from .session import TARGET_PATHS
+from ..cli import cli_overrides, command, config_flag
+from ..presets import PRESETS
 
 
 def _options(p: argparse.ArgumentParser) -> None:
+    # built only when `console` is the command: heavy imports are fine here
+    from ..experiments.target_lock import RunConfig
+    from .session import TARGET_PATHS
     p.add_argument("--config", metavar="FILE", help="TOML config (e.g. a run folder's config.toml)")
     p.add_argument("--preset", choices=PRESETS, help="endoscope preset (default: calibrated)")
-    p.add_argument("--controller", choices=CONTROLLERS, help="controller at start (default pi-hc)")
     p.add_argument("--path", choices=TARGET_PATHS, help="twin: target path at start (default linear)")
-    p.add_argument("--i-gain", type=float, metavar="I", help="integral gain I (tick/(px·s), default 300)")
-    p.add_argument("--latency", type=float, metavar="S", help="twin: video latency (s, default 0.4)")
-    p.add_argument("--fps", type=float, help="twin: camera frame rate (default 22)")
-    p.add_argument("--tracker", choices=("feature", "marker"), help="twin: tracker of the rendered frames (default feature)")
-    p.add_argument("--seed", type=int, help="random seed of the twin's scene texture")
+    for flag, dotted in (("--controller", "controller.kind"), ("--i-gain", "controller.i_gain"),
+                         ("--latency", "twin.camera.latency"), ("--fps", "twin.camera.fps"),
+                         ("--tracker", "vision_tracker"), ("--seed", "seed")):
+        config_flag(p, flag, RunConfig, dotted)
     p.add_argument("--rig", metavar="FILE", help="run on the rig this file describes instead of the twin")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; any other needs a token)")
     p.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0 = any free port)")
@@ -45,21 +44,10 @@ def _console(args: argparse.Namespace) -> int:
         return _bench(args)
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port = {args.port} is out of range; allowed: [0, 65535]")
-    over: dict = {"twin": {"camera": {}, "scene": {}}, "controller": {}, "vision": True, "realtime": True}
-    if args.controller:
-        over["controller"]["kind"] = args.controller
-    if args.i_gain is not None:
-        over["controller"]["i_gain"] = args.i_gain
+    from ..model.twin import merge
+    over = merge({"vision": True, "realtime": True}, cli_overrides(args))
     if args.path:
-        over["twin"]["scene"]["path"] = args.path
-    if args.latency is not None:
-        over["twin"]["camera"]["latency"] = args.latency
-    if args.fps is not None:
-        over["twin"]["camera"]["fps"] = args.fps
-    if args.tracker:
-        over["vision_tracker"] = args.tracker
-    if args.seed is not None:
-        over["seed"] = args.seed
+        over = merge(over, {"twin": {"scene": {"path": args.path}}})
     cfg = build_config(RunConfig, config_file=args.config, preset=args.preset, overrides=over)
     token = args.token or (None if is_loopback(args.host) else new_token())
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
