@@ -8,7 +8,7 @@ from dataclasses import replace
 
 from targetlock.interfaces.canbus import CanBusConfig
 from targetlock.interfaces.cia402 import CanopenDrives, CanopenRigConfig
-from targetlock.interfaces.sim_cia402 import SimDriveSet
+from targetlock.interfaces.sim_cia402 import SimDriveBehaviour, SimDriveSet
 
 
 def virtual_bus() -> CanBusConfig:
@@ -23,11 +23,14 @@ def free_udp_port() -> int:
 
 
 @contextmanager
-def rig(initial_angles=(0.0, 0.0), encoder_offsets=(0, 0), start_driver=True, **cfg_overrides):
-    """Simulated drives plus the driver on a fresh virtual bus; both closed afterwards."""
+def rig(initial_angles=(0.0, 0.0), encoder_offsets=(0, 0), start_driver=True,
+        behaviour: SimDriveBehaviour = SimDriveBehaviour(), **cfg_overrides):
+    """Simulated drives (with ``behaviour``) plus the driver on a fresh virtual bus; both closed afterwards."""
+    # a generous link-loss time: a loaded test machine can pause the simulated drives' threads
+    cfg_overrides.setdefault("status_timeout", 0.2)
     cfg = replace(CanopenRigConfig(bus=virtual_bus()), **cfg_overrides)
     sims = SimDriveSet(cfg.bus, cfg.node_ids, cfg.drive_params(), initial_angles=initial_angles,
-                       encoder_offsets=encoder_offsets)
+                       encoder_offsets=encoder_offsets, behaviour=behaviour)
     sims.start()
     drives = None
     try:
