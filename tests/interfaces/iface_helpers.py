@@ -26,8 +26,9 @@ def free_udp_port() -> int:
 def rig(initial_angles=(0.0, 0.0), encoder_offsets=(0, 0), start_driver=True,
         behaviour: SimDriveBehaviour = SimDriveBehaviour(), **cfg_overrides):
     """Simulated drives (with ``behaviour``) plus the driver on a fresh virtual bus; both closed afterwards."""
-    # a generous link-loss time: a loaded test machine can pause the simulated drives' threads
-    cfg_overrides.setdefault("status_timeout", 0.2)
+    # generous link-loss times: a loaded test machine can pause the simulated drives' threads
+    for name, value in (("status_timeout", 0.3), ("heartbeat_timeout", 0.5), ("sdo_timeout", 0.5)):
+        cfg_overrides.setdefault(name, value)
     cfg = replace(CanopenRigConfig(bus=virtual_bus()), **cfg_overrides)
     sims = SimDriveSet(cfg.bus, cfg.node_ids, cfg.drive_params(), initial_angles=initial_angles,
                        encoder_offsets=encoder_offsets, behaviour=behaviour)

@@ -237,6 +237,7 @@ class CiA402Drive:
         self.tpdo_count = 0
         self.heartbeat_time: float | None = None
         self.heartbeat_state: int | None = None
+        self.heartbeat_seq = 0
         self.rebooted = False
         self.heartbeat_lost = False
         self.expect_operational = False
@@ -252,10 +253,12 @@ class CiA402Drive:
         self.homed = False
         self.pdo_active = False
         self.missed_acks = 0
-        """Consecutive set-point calls in which this drive did not take a new set-point."""
+        """Consecutive set-points this drive missed: not sent (drive not ready) or never acknowledged."""
         self.missed_total = 0
+        self.edges = 0
+        """New-set-point edges sent (each one is acknowledged in its call, late, or counted missed)."""
         self.late_acks = 0
-        """Set-points acknowledged only after their call had returned (counted as missed there)."""
+        """Set-points acknowledged only after their call had returned (taken, but late)."""
         self._sp_phase = "idle"      # idle | raised (bit 4 high, waiting for ack) | lowered (waiting for ack low)
         self._sp_seq = 0             # status_seq when bit 4 last changed
         self._rpdo_cob = 0x200 + self.node_id
@@ -268,6 +271,7 @@ class CiA402Drive:
         with self._cond:
             self.heartbeat_time = time.monotonic()
             self.heartbeat_state = state
+            self.heartbeat_seq += 1
             if state == 0:
                 self.rebooted = True
                 self.homed = False
@@ -609,23 +613,23 @@ class CiA402Drive:
             self.rebooted = False
 
     def ensure_operational(self) -> None:
-        """Bring the node back to NMT operational (e.g. after a lost host heartbeat sent it to pre-operational)."""
+        """NMT start, confirmed by a heartbeat sent after it: brings back a node that left operational
+        (e.g. pre-operational after a lost host heartbeat); harmless to a node that is operational."""
         with self._cond:
-            state = self.heartbeat_state
-        if state == 5:
-            return
-        name = canopen.nmt.NMT_STATES.get(state, str(state))
-        log.warning("node %d is NMT %s: sending NMT start", self.node_id, name)
+            state, seen = self.heartbeat_state, self.heartbeat_seq
+        if state != 5:
+            log.warning("node %d is NMT %s: sending NMT start", self.node_id,
+                        canopen.nmt.NMT_STATES.get(state, str(state)))
         try:
             self.node.nmt.send_command(0x01)
         except (can.CanError, OSError, RuntimeError) as exc:
             raise BusError(f"node {self.node_id}: CAN bus error sending NMT start: {exc}") from exc
         deadline = time.monotonic() + max(BOOT_WAIT_S, 3 * self.cfg.heartbeat_period)
         with self._cond:
-            self.heartbeat_state = None
-            while self.heartbeat_state != 5:
+            while self.heartbeat_seq <= seen or self.heartbeat_state != 5:
                 left = deadline - time.monotonic()
                 if left <= 0:
+                    name = canopen.nmt.NMT_STATES.get(self.heartbeat_state, str(self.heartbeat_state))
                     raise DriveFault(f"node {self.node_id}: still NMT {name} after NMT start")
                 self._cond.wait(left)
 
@@ -656,8 +660,7 @@ class CiA402Drive:
             raise DriveFault(f"node {self.node_id}: did not reach operation enabled")
         self.target = self.read_position()
         self.controlword = o.CW_ENABLE_OPERATION
-        self._sp_phase = "lowered"         # the next set-point first makes sure the acknowledge is low
-        self._sp_seq = self._status_seq_now()
+        self._ready_for_setpoints()
         self.expect_enabled = True
 
     def disable_power(self) -> bool:
@@ -731,8 +734,7 @@ class CiA402Drive:
         self.write(o.SOFTWARE_LIMITS, c.max_ticks, 2)
         self.target = self.read_position()
         self.write(o.TARGET_POSITION, self.target)
-        self._sp_phase = "lowered"
-        self._sp_seq = self._status_seq_now()
+        self._ready_for_setpoints()
         self.homed = True
 
     # ---------------------------------------------------------------- set-point handshake
@@ -741,6 +743,12 @@ class CiA402Drive:
     # last lowered shows the acknowledge (bit 12) low; the set-point is taken when a status received
     # after the raise shows the acknowledge high; then lower bit 4. Nothing here waits past the
     # call's deadline: a drive that is late is counted (missed) and caught up on the next call.
+
+    def _ready_for_setpoints(self) -> None:
+        """After the last controlword by SDO: the first set-point may go at once if the acknowledge is low."""
+        sw = self.read_statusword()               # read after the command: not a stale status
+        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK else "idle"
+        self._sp_seq = self._status_seq_now()
 
     def _status_since(self, seq: int, predicate: Callable[[int], bool], deadline: float,
                       abort: threading.Event) -> int | None:
@@ -778,13 +786,17 @@ class CiA402Drive:
             self._check_enabled(self.statusword)
         if self._sp_phase == "raised":
             # the previous edge was not acknowledged within its call: if it has been by now, it was late
-            if self._status_since(self._sp_seq, lambda sw: bool(sw & o.SW_SETPOINT_ACK), 0.0, abort) is not None:
+            if self._status_since(self._sp_seq, lambda sw: bool(sw & o.SW_SETPOINT_ACK), deadline, abort) is not None:
                 self.late_acks += 1
+                self.missed_acks = 0
+            else:
+                self._missed("never acknowledged")
             self._lower()
         if self._sp_phase == "lowered":
             ack_low = self._status_since(self._sp_seq, lambda sw: not sw & o.SW_SETPOINT_ACK or bool(sw & o.SW_FAULT),
                                          deadline, abort)
             if ack_low is None:
+                self._missed("not sent: the drive did not show the acknowledge low in time")
                 return False
             self._check_enabled(ack_low)
             self._sp_phase = "idle"
@@ -793,6 +805,7 @@ class CiA402Drive:
         self._sp_seq = self._status_seq_now()
         self.send_controlword(o.CW_ENABLE_OPERATION | o.CW_NEW_SETPOINT | o.CW_CHANGE_IMMEDIATELY, target)
         self._sp_phase = "raised"
+        self.edges += 1
         return True
 
     def await_ack(self, deadline: float, abort: threading.Event) -> bool:
@@ -802,6 +815,7 @@ class CiA402Drive:
         sw = self._status_since(self._sp_seq, lambda s: bool(s & (o.SW_SETPOINT_ACK | o.SW_FAULT)), deadline, abort)
         if sw is None or sw & o.SW_FAULT:
             return False
+        self.missed_acks = 0
         self._lower()
         return True
 
@@ -810,15 +824,10 @@ class CiA402Drive:
         self.send_controlword(o.CW_ENABLE_OPERATION | o.CW_CHANGE_IMMEDIATELY)
         self._sp_phase = "lowered"
 
-    def count_setpoint(self, taken: bool) -> None:
-        """Book one set-point call's result for this drive."""
-        if taken:
-            self.missed_acks = 0
-            return
+    def _missed(self, why: str) -> None:
         self.missed_acks += 1
         self.missed_total += 1
-        log.warning("node %d: set-point %d not taken within %.0f ms (%d in a row)", self.node_id, self.target,
-                    self.cfg.setpoint_ack_timeout * 1e3, self.missed_acks)
+        log.warning("node %d: set-point missed (%s; %d in a row)", self.node_id, why, self.missed_acks)
 
 
 class CanopenDrives(Drives):
@@ -841,8 +850,8 @@ class CanopenDrives(Drives):
         self._master_hb = None
         self._enabled = False
         self._bus_error: str | None = None
-        self.stats = {"setpoints": 0, "sdo_position_reads": 0, "pdo_position_reads": 0, "missed_acks": 0,
-                      "late_acks": 0, "disable_retries": 0}
+        self.stats = {"setpoints": 0, "acked_in_call": 0, "sdo_position_reads": 0, "pdo_position_reads": 0,
+                      "disable_retries": 0}
         self._call_times: list[float] = []      # duration of each send_setpoints call (s), last CALL_LOG_LENGTH
         self._want_disabled = False
         self._disable_unconfirmed: str | None = None
@@ -1008,9 +1017,13 @@ class CanopenDrives(Drives):
         return "; ".join(texts) if texts else None
 
     def report(self) -> dict:
-        """Figures for a run summary: set-points sent, missed and late acknowledges, disable retries,
+        """Figures for a run summary: set-point calls, edges sent, acknowledged in the call, late
+        (taken after the call returned) and missed (not sent, or never acknowledged), disable retries,
         and the time each :meth:`send_setpoints` call took (ms, median / p99 / max)."""
         out = dict(self.stats)
+        out["edges"] = sum(d.edges for d in self.drives)
+        out["late_acks"] = sum(d.late_acks for d in self.drives)
+        out["missed"] = sum(d.missed_total for d in self.drives)
         out["missed_per_drive"] = {d.node_id: d.missed_total for d in self.drives}
         times = np.array(self._call_times) * 1e3
         if times.size:
@@ -1084,16 +1097,12 @@ class CanopenDrives(Drives):
             def go() -> None:
                 start = time.monotonic()
                 deadline = start + self.config.setpoint_ack_timeout   # the whole call's budget, both drives
-                late_before = sum(d.late_acks for d in self.drives)
                 raised = [d.request_setpoint(int(target), deadline, self._abort)
                           for d, target in zip(self.drives, targets)]
                 taken = [r and d.await_ack(deadline, self._abort) for d, r in zip(self.drives, raised)]
                 if self._abort.is_set():
                     raise MotionRefused("set-point interrupted: drives are being disabled")
-                for d, ok in zip(self.drives, taken):
-                    d.count_setpoint(ok)
-                self.stats["missed_acks"] += taken.count(False)
-                self.stats["late_acks"] += sum(d.late_acks for d in self.drives) - late_before
+                self.stats["acked_in_call"] += taken.count(True)
                 self.stats["setpoints"] += 1
                 self._call_times.append(time.monotonic() - start)
                 del self._call_times[:-CALL_LOG_LENGTH]

@@ -78,6 +78,10 @@ class Drives(abc.ABC):
     def enable(self) -> None:
         """Explicit re-enable after a fault has been cleared."""
 
+    def report(self) -> dict:
+        """Figures for the run summary (counts, times in ms); empty when the drives keep none."""
+        return {}
+
 
 class ObservationSource(abc.ABC):
     """Delivers tracker observations when they arrive at the controller."""
