@@ -22,6 +22,9 @@ from iface_helpers import rig
 
 ELMO_LIKE = SimDriveBehaviour(strict_setpoint=True, status_on_change=False)
 """Strict handshake processed in the drive's cycle, status PDO on its 5 ms timer only."""
+ROOMY = 0.03
+"""Set-point call budget (s) for tests about counting, not timing: a loaded test machine can stall
+the simulated drives' threads for longer than the 10 ms default."""
 
 
 def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
@@ -36,7 +39,7 @@ def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
 # ---------------------------------------------------------------- item 1: set-points lost silently
 
 def test_strict_drive_takes_every_setpoint_the_driver_counts_as_sent():
-    with rig(behaviour=ELMO_LIKE) as (cfg, sims, drives):
+    with rig(behaviour=ELMO_LIKE, setpoint_ack_timeout=ROOMY) as (cfg, sims, drives):
         drives.home()
         n = 30
         for k in range(n):
@@ -57,7 +60,7 @@ def test_setpoints_sent_back_to_back_are_never_silently_lost_on_a_strict_drive()
     """No pause between calls: the acknowledge of the previous set-point is still high at the next call.
     A strict drive with timer-only status takes at most one set-point per two status PDOs; the
     rest are counted missed, none is sent as an edge the drive ignores."""
-    with rig(behaviour=ELMO_LIKE) as (cfg, sims, drives):
+    with rig(behaviour=ELMO_LIKE, setpoint_ack_timeout=ROOMY) as (cfg, sims, drives):
         drives.home()
         for k in range(20):
             try:
@@ -310,3 +313,27 @@ def test_driver_runs_on_the_drives_eds(tmp_path):
         assert wait_until(lambda: np.all(np.abs(drives.positions() - 200) <= 25), 2.0)
     with pytest.raises(ConfigError, match="eds_file"):
         replace(CanopenRigConfig(), eds_file=str(tmp_path / "missing.eds")).check()
+
+
+def test_cyclic_synchronous_position_with_sync():
+    with rig(operation_mode="cyclic_sync_position", sync_period=0.005, homing_method=21,
+             initial_angles=(0.01, -0.01)) as (cfg, sims, drives):
+        sim = sims[cfg.node_ids[0]]
+        assert sim._mode == o.MODE_CYCLIC_SYNC_POSITION
+        assert sim._tpdos[0].trans_type == 1 and sim._rpdos[0].trans_type == 1
+        assert sim._params_od[(o.INTERPOLATION_PERIOD, 1)] == 5
+        drives.home()                                  # homing mode, then back to cyclic synchronous
+        assert sim._mode == o.MODE_CYCLIC_SYNC_POSITION and np.all(np.abs(sims.angles()) < 1e-3)
+        n_sync = sim.stats["sync"]
+        for k in range(1, 26):                         # a 50 Hz ramp of targets, as the loop sends them
+            drives.send_setpoints(np.array([40 * k, -40 * k]))
+            time.sleep(0.02)
+        assert sim.stats["sync"] - n_sync >= 25        # the SYNC producer runs (5 ms)
+        assert wait_until(lambda: np.all(np.abs(drives.positions() - [1000, -1000]) <= 25), 2.0)
+        r = drives.report()
+        assert r["edges"] == 50 and r["acked_in_call"] >= 40     # the drives showed "following"
+        assert sim.stats["setpoints"] >= 20                       # targets were taken at the SYNCs
+    with pytest.raises(ConfigError, match="use_pdo"):
+        replace(CanopenRigConfig(), operation_mode="cyclic_sync_position", use_pdo=False).check()
+    with pytest.raises(ConfigError, match="sync_period"):
+        replace(CanopenRigConfig(), operation_mode="cyclic_sync_position", sync_period=0.03).check_timing(50.0)

@@ -128,6 +128,12 @@ class CanopenRigConfig:
                                       "one 50 Hz loop period by default")
     eds_file: str = param("", doc="EDS or DCF of the drives (object types and sizes); "
                                   "empty = targetlock's built-in CiA 402 dictionary")
+    operation_mode: str = param("profile_position", choices=("profile_position", "cyclic_sync_position"),
+                                doc="profile_position: set-point handshake per target (0x6060 = 1); "
+                                    "cyclic_sync_position: a target every SYNC, no handshake (0x6060 = 8)")
+    sync_period: float = param(0.005, unit="s", lo=0.001, hi=0.1,
+                               doc="cyclic_sync_position: this computer's SYNC period; the drives take the latest "
+                                   "target and send their status on every SYNC (0x60C2 interpolation period)")
     comm_error_behaviour: int = param(0, lo=0, hi=2,
                                       doc="0x1029:1, drive's NMT reaction to a communication error such as a lost "
                                           "host heartbeat: 0 pre-operational, 1 no change, 2 stopped")
@@ -159,7 +165,12 @@ class CanopenRigConfig:
                               f"{prefix}master_heartbeat_period = {self.master_heartbeat_period} s (or be 0)")
         if self.drive_consumer_timeout and not self.master_heartbeat_period:
             raise ConfigError(f"{prefix}drive_consumer_timeout needs master_heartbeat_period > 0")
-        if self.use_pdo and self.tpdo_period >= self.setpoint_ack_timeout:
+        if self.csp and not self.use_pdo:
+            raise ConfigError(f"{prefix}operation_mode = 'cyclic_sync_position' needs {prefix}use_pdo = true")
+        if self.csp and self.status_timeout < 2 * self.sync_period:
+            raise ConfigError(f"{prefix}status_timeout = {self.status_timeout} s must be at least twice "
+                              f"{prefix}sync_period = {self.sync_period} s")
+        if self.use_pdo and not self.csp and self.tpdo_period >= self.setpoint_ack_timeout:
             raise ConfigError(f"{prefix}tpdo_period = {self.tpdo_period} s must be shorter than "
                               f"{prefix}setpoint_ack_timeout = {self.setpoint_ack_timeout} s: a drive that sends its "
                               f"status on the timer only answers a set-point up to one tpdo_period later")
@@ -172,7 +183,10 @@ class CanopenRigConfig:
     def check_timing(self, loop_rate: float, prefix: str = "can.") -> None:
         """Refuse timing settings that cannot keep a control loop at ``loop_rate`` (Hz)."""
         period = 1.0 / loop_rate
-        if self.use_pdo and self.setpoint_ack_timeout > 0.5 * period:
+        if self.csp and self.sync_period > period:
+            raise ConfigError(f"{prefix}sync_period = {self.sync_period} s must not exceed the loop period "
+                              f"({period:.4g} s at {loop_rate:g} Hz): the drives would skip targets")
+        if self.use_pdo and not self.csp and self.setpoint_ack_timeout > 0.5 * period:
             raise ConfigError(f"{prefix}setpoint_ack_timeout = {self.setpoint_ack_timeout} s must be at most half the "
                               f"loop period ({0.5 * period:.4g} s at {loop_rate:g} Hz)")
         if self.use_pdo and self.tpdo_period > 0.5 * period:
@@ -182,6 +196,21 @@ class CanopenRigConfig:
             raise ConfigError(f"{prefix}sdo_timeout = {self.sdo_timeout} s must be at most half the loop period "
                               f"({0.5 * period:.4g} s at {loop_rate:g} Hz) with use_pdo = false: every tick waits "
                               f"on SDO answers")
+
+    @property
+    def csp(self) -> bool:
+        """Cyclic synchronous position mode with SYNC."""
+        return self.operation_mode == "cyclic_sync_position"
+
+    @property
+    def mode(self) -> int:
+        """0x6060 value of the configured operation mode."""
+        return o.MODE_CYCLIC_SYNC_POSITION if self.csp else o.MODE_PROFILE_POSITION
+
+    @property
+    def status_period(self) -> float:
+        """Expected time between status PDOs (s): the SYNC period in cyclic synchronous mode, else the event timer."""
+        return self.sync_period if self.csp else self.tpdo_period
 
     def ticks(self, rad: float) -> int:
         """Encoder ticks of an angle or angular rate (rad, rad/s, ...)."""
@@ -387,7 +416,10 @@ class CiA402Drive:
             self._configure_pdos()
         else:
             self._invalidate_pdos(range(1, o.N_PDO + 1))
-        self.set_mode(o.MODE_PROFILE_POSITION)
+        if self.cfg.csp:
+            self.write(o.INTERPOLATION_PERIOD, max(1, int(round(self.cfg.sync_period * 1e3))), 1)
+            self.write(o.INTERPOLATION_PERIOD, -3, 2)
+        self.set_mode(self.cfg.mode)
 
     def _check_emcy(self) -> None:
         """EMCY must be produced (0x1014 bit 31 clear): it is how a drive reports a fault at once."""
@@ -416,9 +448,9 @@ class CiA402Drive:
             tp.add_variable(o.STATUSWORD)
             tp.add_variable(o.POSITION_ACTUAL)
             tp.cob_id = 0x180 + self.node_id
-            tp.trans_type = o.TRANS_EVENT_PROFILE
+            tp.trans_type = 1 if c.csp else o.TRANS_EVENT_PROFILE      # CSP: status on every SYNC
             tp.inhibit_time = 0
-            tp.event_timer = max(1, int(round(c.tpdo_period * 1e3)))
+            tp.event_timer = 0 if c.csp else max(1, int(round(c.tpdo_period * 1e3)))
             tp.rtr_allowed = False
             tp.enabled = True
             tp.save()
@@ -427,7 +459,7 @@ class CiA402Drive:
             rp.add_variable(o.CONTROLWORD)
             rp.add_variable(o.TARGET_POSITION)
             rp.cob_id = self._rpdo_cob
-            rp.trans_type = o.TRANS_EVENT_PROFILE
+            rp.trans_type = 1 if c.csp else o.TRANS_EVENT_PROFILE      # CSP: target taken at the next SYNC
             rp.rtr_allowed = False
             rp.enabled = True
             rp.save()
@@ -462,7 +494,7 @@ class CiA402Drive:
     @property
     def pdo_stale_after(self) -> float:
         """Age (s) beyond which TPDO feedback is not trusted and SDO is used instead."""
-        return max(3.0 * self.cfg.tpdo_period, 0.05)
+        return max(3.0 * self.cfg.status_period, 0.05)
 
     def state(self) -> State:
         return decode_state(self.current_statusword())
@@ -479,7 +511,7 @@ class CiA402Drive:
         while True:
             if self.pdo_active:
                 with self._cond:
-                    quiet_until = min(deadline, time.monotonic() + 2.0 * self.cfg.tpdo_period)
+                    quiet_until = min(deadline, time.monotonic() + 2.0 * self.cfg.status_period)
                     while self.status_seq <= seen and time.monotonic() < quiet_until:
                         self._cond.wait(max(0.0, quiet_until - time.monotonic()))
                     fresh = self.status_seq > seen
@@ -689,7 +721,7 @@ class CiA402Drive:
         after = self._status_seq_now()
         try:
             self.send_controlword(o.CW_DISABLE_VOLTAGE)
-            return self._status_since(after, self.power_off_confirmed, time.monotonic() + 3 * self.cfg.tpdo_period,
+            return self._status_since(after, self.power_off_confirmed, time.monotonic() + 3 * self.cfg.status_period,
                                       threading.Event()) is not None
         except DriveFault as exc:
             log.error("node %d: disable by RPDO failed: %s", self.node_id, exc)
@@ -728,7 +760,7 @@ class CiA402Drive:
         if sw & o.SW_HOMING_ERROR:
             raise DriveFault(f"node {self.node_id}: homing error (statusword 0x{sw:04X}, method "
                              f"{self.cfg.homing_method})")
-        self.set_mode(o.MODE_PROFILE_POSITION)
+        self.set_mode(self.cfg.mode)
         c = self.cfg
         self.write(o.SOFTWARE_LIMITS, c.min_ticks, 1)
         self.write(o.SOFTWARE_LIMITS, c.max_ticks, 2)
@@ -747,7 +779,7 @@ class CiA402Drive:
     def _ready_for_setpoints(self) -> None:
         """After the last controlword by SDO: the first set-point may go at once if the acknowledge is low."""
         sw = self.read_statusword()               # read after the command: not a stale status
-        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK else "idle"
+        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK and not self.cfg.csp else "idle"
         self._sp_seq = self._status_seq_now()
 
     def _status_since(self, seq: int, predicate: Callable[[int], bool], deadline: float,
@@ -824,6 +856,26 @@ class CiA402Drive:
         self.send_controlword(o.CW_ENABLE_OPERATION | o.CW_CHANGE_IMMEDIATELY)
         self._sp_phase = "lowered"
 
+    def send_cyclic_target(self, target: int) -> bool:
+        """Cyclic synchronous position: send the target for the next SYNC (no handshake, no waiting).
+
+        Returns whether the drive followed the previous target: a status received since the
+        previous call shows bit 12 ("drive follows the command value"); otherwise it counts as missed."""
+        with self._cond:
+            sw = self.statusword
+            fresh = self.status_seq > self._sp_seq
+            self._check_enabled(sw)
+            self._sp_seq = self.status_seq
+        following = fresh and sw is not None and bool(sw & o.SW_FOLLOWING)
+        if following:
+            self.missed_acks = 0
+        elif self._sp_phase != "idle":
+            self._missed("no status showing the drive following since the last target")
+        self._sp_phase = "sent"
+        self.send_controlword(o.CW_ENABLE_OPERATION, target)
+        self.edges += 1
+        return following
+
     def _missed(self, why: str) -> None:
         self.missed_acks += 1
         self.missed_total += 1
@@ -874,6 +926,8 @@ class CanopenDrives(Drives):
             self.drives = tuple(CiA402Drive(net, nid, c) for nid in c.node_ids)
             if c.master_heartbeat_period > 0:
                 self._master_hb = net.send_periodic(0x700 + c.master_node_id, [0x05], c.master_heartbeat_period)
+            if c.csp:
+                net.sync.start(c.sync_period)          # SYNC producer: the drives' cycle
             for d in self.drives:
                 d.node.nmt.send_command(0x80)          # pre-operational: configuration by SDO
             for d in self.drives:
@@ -976,6 +1030,11 @@ class CanopenDrives(Drives):
             if self._monitor is not None:
                 self._monitor.join(timeout=1.0)
                 self._monitor = None
+            if self.config.csp:
+                try:
+                    self.network.sync.stop()
+                except Exception:  # noqa: BLE001 - bus may be gone already
+                    pass
             if self._master_hb is not None:
                 try:
                     self._master_hb.stop()
@@ -1096,6 +1155,12 @@ class CanopenDrives(Drives):
 
             def go() -> None:
                 start = time.monotonic()
+                if self.config.csp:
+                    followed = [d.send_cyclic_target(int(target)) for d, target in zip(self.drives, targets)]
+                    self.stats["acked_in_call"] += followed.count(True)
+                    self.stats["setpoints"] += 1
+                    self._book_call(start)
+                    return
                 deadline = start + self.config.setpoint_ack_timeout   # the whole call's budget, both drives
                 raised = [d.request_setpoint(int(target), deadline, self._abort)
                           for d, target in zip(self.drives, targets)]
@@ -1104,15 +1169,19 @@ class CanopenDrives(Drives):
                     raise MotionRefused("set-point interrupted: drives are being disabled")
                 self.stats["acked_in_call"] += taken.count(True)
                 self.stats["setpoints"] += 1
-                self._call_times.append(time.monotonic() - start)
-                del self._call_times[:-CALL_LOG_LENGTH]
-                for d in self.drives:
-                    if d.missed_acks >= MAX_MISSED_ACKS:
-                        raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not taken "
-                                         f"(no acknowledge within {self.config.setpoint_ack_timeout * 1e3:.0f} ms; "
-                                         f"{d.missed_total} missed in all)")
+                self._book_call(start)
             self._guard(go)
             self._raise_if_fault()
+
+    def _book_call(self, start: float) -> None:
+        """Record one set-point call's duration; three misses in a row on a drive are a fault."""
+        self._call_times.append(time.monotonic() - start)
+        del self._call_times[:-CALL_LOG_LENGTH]
+        for d in self.drives:
+            if d.missed_acks >= MAX_MISSED_ACKS:
+                raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not taken "
+                                 f"(no acknowledge within {self.config.setpoint_ack_timeout * 1e3:.0f} ms; "
+                                 f"{d.missed_total} missed in all)")
 
     def positions(self) -> np.ndarray:
         """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO."""

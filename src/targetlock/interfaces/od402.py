@@ -59,6 +59,7 @@ QUICK_STOP_DECELERATION = 0x6085
 HOMING_METHOD = 0x6098
 HOMING_SPEEDS = 0x6099             # sub 1: search for switch, sub 2: search for zero (tick/s)
 HOMING_ACCELERATION = 0x609A
+INTERPOLATION_PERIOD = 0x60C2      # sub 1: value, sub 2: index (period = value x 10^index s)
 SUPPORTED_DRIVE_MODES = 0x6502
 
 MODE_PROFILE_POSITION = 1
@@ -97,6 +98,7 @@ SW_SETPOINT_ACK = 1 << 12          # profile position mode
 SW_HOMING_ATTAINED = 1 << 12       # homing mode
 SW_FOLLOWING_ERROR = 1 << 13       # profile position mode
 SW_HOMING_ERROR = 1 << 13          # homing mode
+SW_FOLLOWING = 1 << 12             # cyclic synchronous position: the drive follows the target (0 = ignored)
 
 # EMCY codes used by the simulated drive and named in fault messages (CiA 301 / 402).
 EMCY_TEXT = {
@@ -337,6 +339,10 @@ def build_object_dictionary(node_id: int) -> ObjectDictionary:
              _var("Speed during search for switch", HOMING_SPEEDS, 1, od.UNSIGNED32, "rw", 20000),
              _var("Speed during search for zero", HOMING_SPEEDS, 2, od.UNSIGNED32, "rw", 5000)]),
          _var("Homing acceleration", HOMING_ACCELERATION, 0, od.UNSIGNED32, "rw", 1000000),
+         _record("Interpolation time period", INTERPOLATION_PERIOD, [
+             _var("Highest sub-index supported", INTERPOLATION_PERIOD, 0, od.UNSIGNED8, "ro", 2),
+             _var("Interpolation time period value", INTERPOLATION_PERIOD, 1, od.UNSIGNED8, "rw", 1),
+             _var("Interpolation time index", INTERPOLATION_PERIOD, 2, od.INTEGER8, "rw", -3)]),
          _var("Supported drive modes", SUPPORTED_DRIVE_MODES, 0, od.UNSIGNED32, "ro",
               (1 << (MODE_PROFILE_POSITION - 1)) | (1 << (MODE_HOMING - 1)) | (1 << (MODE_CYCLIC_SYNC_POSITION - 1))),
          )

@@ -9,6 +9,8 @@ of :func:`.od402.build_object_dictionary` and implements what the driver needs f
 * profile position mode (0x6060 = 1) with the new-set-point handshake (controlword bit 4 new
   set-point, bit 5 change set immediately, bit 6 relative, bit 8 halt; statusword bit 12 set-point
   acknowledge, bit 10 target reached, bit 11 internal limit);
+* cyclic synchronous position mode (0x6060 = 8): each target (0x607A, normally by a SYNC-driven
+  RPDO) becomes the motor's demand at once; statusword bit 12 shows that the drive follows;
 * homing mode (0x6060 = 6): methods 35/37 take the current position as home; methods 1-34 run a
   short homing motion to the handle's neutral (angle 0) at the homing speed (0x6099:1) and declare
   the home offset (0x607C) there; other methods end in a homing error (statusword bit 13);
@@ -308,6 +310,8 @@ class SimCiA402Drive:
                         reached = abs(self._velocity_ticks) < 1.0
                     sw |= (o.SW_TARGET_REACHED if reached else 0) | (o.SW_SETPOINT_ACK if self._ack else 0)
                     sw |= o.SW_INTERNAL_LIMIT if self._limited else 0
+                elif self._mode == o.MODE_CYCLIC_SYNC_POSITION:
+                    sw |= o.SW_FOLLOWING | (o.SW_INTERNAL_LIMIT if self._limited else 0)
                 elif self._mode == o.MODE_HOMING:
                     sw |= {"idle": o.SW_TARGET_REACHED, "interrupted": o.SW_TARGET_REACHED, "running": 0,
                            "attained": o.SW_HOMING_ATTAINED | o.SW_TARGET_REACHED,
@@ -322,7 +326,7 @@ class SimCiA402Drive:
                       o.DISABLE_OPERATION_OPTION, o.HALT_OPTION, o.FAULT_REACTION_OPTION, o.EMCY_COB_ID):
             self._params_od[(index, 0)] = d[index].default
         for index, subs in ((o.SOFTWARE_LIMITS, (1, 2)), (o.HOMING_SPEEDS, (1, 2)), (o.CONSUMER_HEARTBEAT, (1,)),
-                            (o.ERROR_BEHAVIOUR, (1,))):
+                            (o.ERROR_BEHAVIOUR, (1,)), (o.INTERPOLATION_PERIOD, (1, 2))):
             for s in subs:
                 self._params_od[(index, s)] = d[index][s].default
 
@@ -391,8 +395,12 @@ class SimCiA402Drive:
                 self._apply_controlword(int(value))
             elif index == o.TARGET_POSITION:
                 self._target_raw = int(value)
+                if self._mode == o.MODE_CYCLIC_SYNC_POSITION and self.state == State.OPERATION_ENABLED:
+                    self._target_active = self._clamp_target(int(value))
+                    self._demand = self._ticks_to_angle(self._target_active)
+                    self.stats["setpoints"] += 1
             elif index == o.MODES_OF_OPERATION:
-                if value not in (o.MODE_PROFILE_POSITION, o.MODE_HOMING):
+                if value not in (o.MODE_PROFILE_POSITION, o.MODE_HOMING, o.MODE_CYCLIC_SYNC_POSITION):
                     raise SdoAbortedError(_ABORT_RANGE)
                 if value != self._mode:
                     self._mode = int(value)
