@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import socket
+import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import replace
@@ -42,3 +43,13 @@ def rig(initial_angles=(0.0, 0.0), encoder_offsets=(0, 0), start_driver=True,
         if drives is not None:
             drives.close()
         sims.stop()
+
+
+def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
+    """Poll ``pred`` until it is true or ``timeout`` (s) has passed; its last value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(period)
+    return pred()

@@ -12,16 +12,7 @@ from targetlock.interfaces.errors import BusError, MotionRefused
 from targetlock.interfaces.od402 import State, decode_state
 from targetlock.rig.base import DriveFault
 
-from iface_helpers import rig
-
-
-def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(period)
-    return pred()
+from iface_helpers import rig, wait_until
 
 
 def move_and_settle(drives, target, timeout=1.5):

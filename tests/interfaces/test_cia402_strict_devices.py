@@ -18,22 +18,13 @@ from targetlock.interfaces.safety import SafeDrives, SafetyConfig, SafetyTrip
 from targetlock.interfaces.sim_cia402 import SimDriveBehaviour
 from targetlock.rig.base import DriveFault
 
-from iface_helpers import rig
+from iface_helpers import rig, wait_until
 
 ELMO_LIKE = SimDriveBehaviour(strict_setpoint=True, status_on_change=False)
 """Strict handshake processed in the drive's cycle, status PDO on its 5 ms timer only."""
 ROOMY = 0.03
 """Set-point call budget (s) for tests about counting, not timing: a loaded test machine can stall
 the simulated drives' threads for longer than the 10 ms default."""
-
-
-def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(period)
-    return pred()
 
 
 # ---------------------------------------------------------------- item 1: set-points lost silently
@@ -337,3 +328,15 @@ def test_cyclic_synchronous_position_with_sync():
         replace(CanopenRigConfig(), operation_mode="cyclic_sync_position", use_pdo=False).check()
     with pytest.raises(ConfigError, match="sync_period"):
         replace(CanopenRigConfig(), operation_mode="cyclic_sync_position", sync_period=0.03).check_timing(50.0)
+
+
+def test_positions_of_a_lost_drive_raise_at_once_instead_of_waiting_for_sdo():
+    with rig(status_timeout=0.05, sdo_timeout=1.0, heartbeat_timeout=5.0) as (cfg, sims, drives):
+        drives.home()
+        sims[cfg.node_ids[1]].set_silent(True)
+        assert wait_until(lambda: drives.fault() is not None, 1.5)
+        time.sleep(drives.drives[1].pdo_stale_after)
+        t0 = time.monotonic()
+        with pytest.raises(DriveFault, match="no status PDO"):
+            drives.positions()
+        assert time.monotonic() - t0 < 0.5          # an SDO read would wait the full 1 s timeout

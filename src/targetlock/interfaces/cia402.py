@@ -1184,7 +1184,8 @@ class CanopenDrives(Drives):
                                  f"{d.missed_total} missed in all)")
 
     def positions(self) -> np.ndarray:
-        """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO."""
+        """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO (not when the
+        drive is known to be faulty or lost: then :class:`DriveFault` at once)."""
         out = np.empty(len(self.drives), dtype=np.int64)
 
         def go() -> None:
@@ -1198,6 +1199,10 @@ class CanopenDrives(Drives):
                     out[i] = pos
                     self.stats["pdo_position_reads"] += 1
                 else:
+                    if d.pdo_active:
+                        text = d.fault_text(now)
+                        if text:                  # a drive known lost is reported, not waited for by SDO
+                            raise DriveFault(text)
                     with self._lock:
                         out[i] = d.read_position()
                     self.stats["sdo_position_reads"] += 1
