@@ -4,25 +4,35 @@
 implements the rig's :class:`~targetlock.rig.base.Drives` interface for the control loop.
 
 Start-up (:meth:`CanopenDrives.start`): NMT pre-operational; by SDO the heartbeat producer time
-(0x1017), the drive's consumer heartbeat for this computer (0x1016, the drive faults if the host
-dies), RPDO1 = controlword + target position and TPDO1 = statusword + position actual (event
-driven, event timer ``tpdo_period``) when ``use_pdo``, other PDOs invalidated, profile position
-mode (0x6060 = 1) with profile velocity / acceleration / deceleration (0x6081/0x6083/0x6084) and
-quick-stop deceleration (0x6085); NMT operational; fault reset if needed; shutdown → switch on →
-enable operation. Homing (:meth:`CanopenDrives.home`) switches to homing mode (0x6060 = 6), runs
-the configured method (0x6098) and waits for statusword bit 12 (homing attained) or bit 13 (homing
-error), then returns to profile position mode and writes the software position limits (0x607D).
+(0x1017), the drive's consumer heartbeat for this computer (0x1016), the drive's own reactions to a
+lost host and to faults (0x1029:1, 0x6007, 0x605A-0x605E, from the rig file), a check that EMCY is
+produced (0x1014), RPDO1 = controlword + target position and TPDO1 = statusword + position actual
+(event driven with event timer ``tpdo_period``, or SYNC-driven in cyclic synchronous position mode)
+when ``use_pdo``, other PDOs invalidated, the operation mode (0x6060 = 1 profile position, or 8 cyclic
+synchronous position with 0x60C2 and a SYNC producer) with profile velocity / acceleration /
+deceleration (0x6081/0x6083/0x6084) and quick-stop deceleration (0x6085); NMT operational; fault
+reset if needed; shutdown → switch on → enable operation. Homing (:meth:`CanopenDrives.home`)
+switches to homing mode (0x6060 = 6), runs the configured method (0x6098) and waits for statusword
+bit 12 (homing attained) or bit 13 (homing error), then returns to the operation mode and writes the
+software position limits (0x607D).
 
-Set-points (:meth:`CanopenDrives.send_setpoints`) use the profile-position handshake: target
-0x607A with controlword bit 4 (new set-point) and bit 5 (change set immediately) raised, wait for
-statusword bit 12 (set-point acknowledge), lower bit 4; both axes in parallel. By RPDO/TPDO when
+Every handshake accepts only status received after its command (statuswords are numbered as they
+arrive), so a status PDO sent on a timer before the command never completes one. Set-points
+(:meth:`CanopenDrives.send_setpoints`) in profile position mode: bit 4 (new set-point, with bit 5
+change set immediately) is raised only after a status shows the previous acknowledge (bit 12) low,
+the set-point counts as taken when a later status shows the acknowledge high, then bit 4 drops.
+One call waits at most ``setpoint_ack_timeout`` for both drives; a late drive is counted (late or
+missed, :meth:`CanopenDrives.report`), three misses in a row are a fault. By RPDO/TPDO when
 ``use_pdo``, otherwise by SDO. No motion before homing; set-points are clamped to the limits.
 
 Faults: statusword bit 3, EMCY messages, heartbeat loss (no heartbeat within
-``heartbeat_timeout``), a node rebooting, the node leaving NMT operational, and bus errors all make
-:meth:`~CanopenDrives.fault` non-None and the next command raise :class:`DriveFault` with the
-reason (error code 0x603F / EMCY code and its meaning). Leaving a fault takes an explicit
-:meth:`~CanopenDrives.enable` (fault reset + enable sequence).
+``heartbeat_timeout``), no status PDO within ``status_timeout``, an unanswered SDO, a node
+rebooting, the node leaving NMT operational, the drive leaving operation enabled on its own, and
+bus errors all make :meth:`~CanopenDrives.fault` non-None and the next command raise
+:class:`DriveFault` with the reason (error code 0x603F / EMCY code and its meaning). Leaving a fault
+takes an explicit :meth:`~CanopenDrives.enable` (NMT start, fault reset, enable sequence); an enable
+that fails leaves every drive disabled. :meth:`~CanopenDrives.disable` counts only when a statusword
+read afterwards shows the power stage off; until then it is reported in ``fault()`` and repeated.
 
 Units: the configuration is SI (rad, rad/s, rad/s², s); ticks exist only at the drive boundary
 (``send_setpoints``, ``positions``, ``limits`` and the CANopen objects).
