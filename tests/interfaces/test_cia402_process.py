@@ -103,7 +103,7 @@ def test_sim_rig_command_streams_the_tip_pose_of_the_driven_handles():
         assert "sim-rig ready" in line, f"sim-rig did not start: {line!r}"
         cfg = CanopenRigConfig(bus=CanBusConfig(interface="udp_loopback", channel=group, port=port),
                                heartbeat_period=0.05, heartbeat_timeout=0.5, setpoint_ack_timeout=0.1,
-                               drive_consumer_timeout=1.0, sdo_timeout=0.5)
+                               drive_consumer_timeout=1.0, sdo_timeout=0.5, status_timeout=0.2)
         ncfg = NatNetConfig(command_port=cmd_port, data_port=data_port, multicast_group=group, connect_timeout=5.0)
         with CanopenDrives(cfg) as drives, NatNetClient(ncfg) as client:
             drives.home()

@@ -133,9 +133,9 @@ class CanopenRigConfig:
                                         doc="set-point acknowledge time limit")
     enable_timeout: float = param(STATE_TRANSITION_TIMEOUT_S, unit="s", lo=0.01, hi=30.0,
                                   doc="time limit of each state-machine transition")
-    status_timeout: float = param(0.02, unit="s", lo=0.002, hi=5.0,
+    status_timeout: float = param(0.05, unit="s", lo=0.002, hi=5.0,
                                   doc="no status PDO for this long while operational = link lost (fault); "
-                                      "one 50 Hz loop period by default")
+                                      "0.02 = one 50 Hz loop period on a quiet computer")
     eds_file: str = param("", doc="EDS or DCF of the drives (object types and sizes); "
                                   "empty = targetlock's built-in CiA 402 dictionary")
     operation_mode: str = param("profile_position", choices=("profile_position", "cyclic_sync_position"),
