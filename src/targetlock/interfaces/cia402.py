@@ -82,7 +82,8 @@ QUICK_STOP_WAIT_S = 0.3
 STATUS_POLL_PERIOD_S = 0.002
 """Period of statusword polling by SDO when no TPDO is configured (s)."""
 MAX_MISSED_ACKS = 3
-"""Consecutive set-points a drive did not take (no acknowledge of that edge in time) that make it a fault (count)."""
+"""Consecutive set-points a drive did not take that make it a fault (count), once it has also taken
+none for longer than ``status_timeout`` (a drive that is late under load is not a fault)."""
 DISABLE_RETRY_S = 0.02
 """Period at which an unconfirmed disable is sent again (s)."""
 EMCY_LOG_LENGTH = 100
@@ -298,6 +299,8 @@ class CiA402Drive:
         """New-set-point edges sent (each one is acknowledged in its call, late, or counted missed)."""
         self.late_acks = 0
         """Set-points acknowledged only after their call had returned (taken, but late)."""
+        self.last_taken = time.monotonic()
+        """Monotonic time (s) of the last set-point this drive took (or of enabling it)."""
         self._sp_phase = "idle"      # idle | raised (bit 4 high, waiting for ack) | lowered (waiting for ack low)
         self._sp_seq = 0             # status_seq when bit 4 last changed
         self._rpdo_cob = 0x200 + self.node_id
@@ -703,6 +706,7 @@ class CiA402Drive:
         self.target = self.read_position()
         self.controlword = o.CW_ENABLE_OPERATION
         self._ready_for_setpoints()
+        self.last_taken = time.monotonic()
         self.expect_enabled = True
 
     def disable_power(self) -> bool:
@@ -830,7 +834,7 @@ class CiA402Drive:
             # the previous edge was not acknowledged within its call: if it has been by now, it was late
             if self._status_since(self._sp_seq, lambda sw: bool(sw & o.SW_SETPOINT_ACK), deadline, abort) is not None:
                 self.late_acks += 1
-                self.missed_acks = 0
+                self._taken()
             else:
                 self._missed("never acknowledged")
             self._lower()
@@ -857,7 +861,7 @@ class CiA402Drive:
         sw = self._status_since(self._sp_seq, lambda s: bool(s & (o.SW_SETPOINT_ACK | o.SW_FAULT)), deadline, abort)
         if sw is None or sw & o.SW_FAULT:
             return False
-        self.missed_acks = 0
+        self._taken()
         self._lower()
         return True
 
@@ -878,13 +882,21 @@ class CiA402Drive:
             self._sp_seq = self.status_seq
         following = fresh and sw is not None and bool(sw & o.SW_FOLLOWING)
         if following:
-            self.missed_acks = 0
+            self._taken()
         elif self._sp_phase != "idle":
             self._missed("no status showing the drive following since the last target")
         self._sp_phase = "sent"
         self.send_controlword(o.CW_ENABLE_OPERATION, target)
         self.edges += 1
         return following
+
+    def _taken(self) -> None:
+        self.missed_acks = 0
+        self.last_taken = time.monotonic()
+
+    def setpoints_lost(self, now: float) -> bool:
+        """Persistent misses: several in a row and none taken for longer than ``status_timeout``."""
+        return self.missed_acks >= MAX_MISSED_ACKS and now - self.last_taken > self.cfg.status_timeout
 
     def _missed(self, why: str) -> None:
         self.missed_acks += 1
@@ -1184,14 +1196,14 @@ class CanopenDrives(Drives):
             self._raise_if_fault()
 
     def _book_call(self, start: float) -> None:
-        """Record one set-point call's duration; three misses in a row on a drive are a fault."""
-        self._call_times.append(time.monotonic() - start)
+        """Record one set-point call's duration; persistent misses on a drive are a fault."""
+        now = time.monotonic()
+        self._call_times.append(now - start)
         del self._call_times[:-CALL_LOG_LENGTH]
         for d in self.drives:
-            if d.missed_acks >= MAX_MISSED_ACKS:
-                raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not taken "
-                                 f"(no acknowledge within {self.config.setpoint_ack_timeout * 1e3:.0f} ms; "
-                                 f"{d.missed_total} missed in all)")
+            if d.setpoints_lost(now):
+                raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not taken, none for "
+                                 f"{(now - d.last_taken) * 1e3:.0f} ms ({d.missed_total} missed in all)")
 
     def positions(self) -> np.ndarray:
         """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO (not when the
