@@ -22,7 +22,8 @@ arrive), so a status PDO sent on a timer before the command never completes one.
 change set immediately) is raised only after a status shows the previous acknowledge (bit 12) low,
 the set-point counts as taken when a later status shows the acknowledge high, then bit 4 drops.
 One call waits at most ``setpoint_ack_timeout`` for both drives; a late drive is counted (late or
-missed, :meth:`CanopenDrives.report`), three misses in a row are a fault. By RPDO/TPDO when
+missed, :meth:`CanopenDrives.report`); three misses in a row with none taken for
+``status_timeout`` are a fault. By RPDO/TPDO when
 ``use_pdo``, otherwise by SDO. No motion before homing; set-points are clamped to the limits.
 
 Faults: statusword bit 3, EMCY messages, heartbeat loss (no heartbeat within
