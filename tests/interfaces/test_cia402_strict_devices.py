@@ -224,13 +224,15 @@ def test_homing_is_not_completed_by_a_stale_homing_attained():
             as (cfg, sims, drives):
         drives.home()
         assert np.all(np.abs(sims.angles()) < 1e-3)
-        drives.send_setpoints(np.array([4000, 4000]))       # 0.064 rad away from home
-        assert wait_until(lambda: np.all(np.abs(drives.positions() - 4000) <= 25), 2.0)
-        # homing mode still shows "homing attained" from the first homing until the new one starts
-        drives.home()
-        assert drives.homed
-        assert np.all(np.abs(sims.angles()) < 1e-3), "home() returned before the homing motion ended"
-        assert np.all(np.abs(drives.positions()) <= 25)
+        # whether a stale status is the latest one at the check depends on the PDO timer's phase: repeat
+        for _ in range(3):
+            drives.send_setpoints(np.array([4000, 4000]))       # 0.064 rad away from home
+            assert wait_until(lambda: np.all(np.abs(drives.positions() - 4000) <= 25), 2.0)
+            # homing mode still shows "homing attained" from the last homing until the new one starts
+            drives.home()
+            assert drives.homed
+            assert np.all(np.abs(sims.angles()) < 1e-3), "home() returned before the homing motion ended"
+            assert np.all(np.abs(drives.positions()) <= 25)
 
 
 # ---------------------------------------------------------------- item 7: clamp before the integer cast
