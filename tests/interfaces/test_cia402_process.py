@@ -51,7 +51,8 @@ def test_driver_and_sim_drives_in_separate_processes():
         assert "sim-rig ready" in line, f"simulated drives did not start: {line!r} {proc.stderr.read() if proc.poll() is not None else ''}"
         cfg = CanopenRigConfig(bus=CanBusConfig(interface="udp_loopback", channel=group, port=port), node_ids=(3, 4),
                                homing_method=21, heartbeat_period=0.05, heartbeat_timeout=0.5,
-                               setpoint_ack_timeout=0.1, drive_consumer_timeout=1.0, sdo_timeout=0.5)
+                               setpoint_ack_timeout=0.1, drive_consumer_timeout=1.0, sdo_timeout=0.5,
+                               status_timeout=0.2)
         with CanopenDrives(cfg) as drives:
             assert drives.states() == [State.OPERATION_ENABLED] * 2
             drives.home()
@@ -69,7 +70,9 @@ def test_driver_and_sim_drives_in_separate_processes():
             t0 = time.monotonic()
             while drives.fault() is None and time.monotonic() - t0 < 3.0:
                 time.sleep(0.005)
-            assert drives.fault() is not None and "heartbeat lost" in drives.fault()
+            # the status PDOs stop first (status_timeout), the heartbeat a little later
+            assert drives.fault() is not None and ("heartbeat lost" in drives.fault()
+                                                   or "no status PDO" in drives.fault())
             assert time.monotonic() - t0 <= cfg.heartbeat_timeout + 0.3
     finally:
         if proc.poll() is None:
@@ -100,7 +103,7 @@ def test_sim_rig_command_streams_the_tip_pose_of_the_driven_handles():
         assert "sim-rig ready" in line, f"sim-rig did not start: {line!r}"
         cfg = CanopenRigConfig(bus=CanBusConfig(interface="udp_loopback", channel=group, port=port),
                                heartbeat_period=0.05, heartbeat_timeout=0.5, setpoint_ack_timeout=0.1,
-                               drive_consumer_timeout=1.0, sdo_timeout=0.5)
+                               drive_consumer_timeout=1.0, sdo_timeout=0.5, status_timeout=0.2)
         ncfg = NatNetConfig(command_port=cmd_port, data_port=data_port, multicast_group=group, connect_timeout=5.0)
         with CanopenDrives(cfg) as drives, NatNetClient(ncfg) as client:
             drives.home()

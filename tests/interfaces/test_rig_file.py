@@ -46,6 +46,9 @@ def test_round_trip_through_dict():
     ({"natnet": {"version": "2.10"}}, "natnet.version"),
     ({"safety": {"max_rate": -1.0}}, "safety.max_rate"),
     ({"can": {"velocity": 3.0}}, "can.velocity"),
+    ({"can": {"tpdo_period": 0.05}}, "can.tpdo_period"),
+    ({"can": {"abort_connection_option": 7}}, "can.abort_connection_option"),
+    ({"can": {"eds_file": "/nonexistent/drive.eds"}}, "can.eds_file"),
 ])
 def test_bad_settings_are_refused_by_name(data, field):
     with pytest.raises(ConfigError) as e:
@@ -58,3 +61,13 @@ def test_bad_file_names_the_file(tmp_path):
     bad.write_text("[can.bus]\ninterface = 'socketcan'\nbitrate = 5\n")
     with pytest.raises(ConfigError, match=r"rig.toml: can.bus.bitrate = 5 is out of range"):
         load_rig_file(bad)
+
+
+def test_hardware_rig_refuses_drive_timing_the_loop_rate_cannot_keep():
+    from dataclasses import replace
+    from targetlock.model.camera import CameraParams
+    from targetlock.rig.hardware import HardwareRig
+    rig = load_rig_file(EXAMPLE)
+    slow = replace(rig, can=replace(rig.can, use_pdo=False))        # every tick waits on SDO (0.1 s timeout)
+    with pytest.raises(ConfigError, match="can.sdo_timeout = 0.1 s must be at most half the loop period"):
+        HardwareRig(slow, CameraParams(), loop_rate=50.0)          # refused before any device is opened

@@ -39,6 +39,8 @@ def rig_file(path: Path) -> Path:
 [can]
 node_ids = [1, 2]
 homing_method = 37
+status_timeout = 0.5
+heartbeat_timeout = 0.5
 [can.bus]
 interface = "udp_loopback"
 channel = "{group}"

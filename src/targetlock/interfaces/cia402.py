@@ -4,25 +4,36 @@
 implements the rig's :class:`~targetlock.rig.base.Drives` interface for the control loop.
 
 Start-up (:meth:`CanopenDrives.start`): NMT pre-operational; by SDO the heartbeat producer time
-(0x1017), the drive's consumer heartbeat for this computer (0x1016, the drive faults if the host
-dies), RPDO1 = controlword + target position and TPDO1 = statusword + position actual (event
-driven, event timer ``tpdo_period``) when ``use_pdo``, other PDOs invalidated, profile position
-mode (0x6060 = 1) with profile velocity / acceleration / deceleration (0x6081/0x6083/0x6084) and
-quick-stop deceleration (0x6085); NMT operational; fault reset if needed; shutdown → switch on →
-enable operation. Homing (:meth:`CanopenDrives.home`) switches to homing mode (0x6060 = 6), runs
-the configured method (0x6098) and waits for statusword bit 12 (homing attained) or bit 13 (homing
-error), then returns to profile position mode and writes the software position limits (0x607D).
+(0x1017), the drive's consumer heartbeat for this computer (0x1016), the drive's own reactions to a
+lost host and to faults (0x1029:1, 0x6007, 0x605A-0x605E, from the rig file), a check that EMCY is
+produced (0x1014), RPDO1 = controlword + target position and TPDO1 = statusword + position actual
+(event driven with event timer ``tpdo_period``, or SYNC-driven in cyclic synchronous position mode)
+when ``use_pdo``, other PDOs invalidated, the operation mode (0x6060 = 1 profile position, or 8 cyclic
+synchronous position with 0x60C2 and a SYNC producer) with profile velocity / acceleration /
+deceleration (0x6081/0x6083/0x6084) and quick-stop deceleration (0x6085); NMT operational; fault
+reset if needed; shutdown → switch on → enable operation. Homing (:meth:`CanopenDrives.home`)
+switches to homing mode (0x6060 = 6), runs the configured method (0x6098) and waits for statusword
+bit 12 (homing attained) or bit 13 (homing error), then returns to the operation mode and writes the
+software position limits (0x607D).
 
-Set-points (:meth:`CanopenDrives.send_setpoints`) use the profile-position handshake: target
-0x607A with controlword bit 4 (new set-point) and bit 5 (change set immediately) raised, wait for
-statusword bit 12 (set-point acknowledge), lower bit 4; both axes in parallel. By RPDO/TPDO when
+Every handshake accepts only status received after its command (statuswords are numbered as they
+arrive), so a status PDO sent on a timer before the command never completes one. Set-points
+(:meth:`CanopenDrives.send_setpoints`) in profile position mode: bit 4 (new set-point, with bit 5
+change set immediately) is raised only after a status shows the previous acknowledge (bit 12) low,
+the set-point counts as taken when a later status shows the acknowledge high, then bit 4 drops.
+One call waits at most ``setpoint_ack_timeout`` for both drives; a late drive is counted (late or
+missed, :meth:`CanopenDrives.report`); three misses in a row with none taken for
+``status_timeout`` are a fault. By RPDO/TPDO when
 ``use_pdo``, otherwise by SDO. No motion before homing; set-points are clamped to the limits.
 
 Faults: statusword bit 3, EMCY messages, heartbeat loss (no heartbeat within
-``heartbeat_timeout``), a node rebooting, the node leaving NMT operational, and bus errors all make
-:meth:`~CanopenDrives.fault` non-None and the next command raise :class:`DriveFault` with the
-reason (error code 0x603F / EMCY code and its meaning). Leaving a fault takes an explicit
-:meth:`~CanopenDrives.enable` (fault reset + enable sequence).
+``heartbeat_timeout``), no status PDO within ``status_timeout``, an unanswered SDO, a node
+rebooting, the node leaving NMT operational, the drive leaving operation enabled on its own, and
+bus errors all make :meth:`~CanopenDrives.fault` non-None and the next command raise
+:class:`DriveFault` with the reason (error code 0x603F / EMCY code and its meaning). Leaving a fault
+takes an explicit :meth:`~CanopenDrives.enable` (NMT start, fault reset, enable sequence); an enable
+that fails leaves every drive disabled. :meth:`~CanopenDrives.disable` counts only when a statusword
+read afterwards shows the power stage off; until then it is reported in ``fault()`` and repeated.
 
 Units: the configuration is SI (rad, rad/s, rad/s², s); ticks exist only at the drive boundary
 (``send_setpoints``, ``positions``, ``limits`` and the CANopen objects).
@@ -35,6 +46,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import can
@@ -62,8 +74,8 @@ SDO_TIMEOUT_S = 0.1
 """Time an SDO request may wait for the drive's answer (s)."""
 STATE_TRANSITION_TIMEOUT_S = 1.0
 """Time one CiA 402 state transition (e.g. switch on -> operation enabled) may take (s)."""
-SETPOINT_ACK_TIMEOUT_S = 0.02
-"""Time a drive may take to acknowledge a new set-point (statusword bit 12) (s)."""
+SETPOINT_ACK_TIMEOUT_S = 0.01
+"""Time one set-point handshake may wait for the drives per call (s); a later drive is reported, not waited for."""
 BOOT_WAIT_S = 2.0
 """Time to wait for each node's first heartbeat after NMT start (s)."""
 QUICK_STOP_WAIT_S = 0.3
@@ -71,9 +83,16 @@ QUICK_STOP_WAIT_S = 0.3
 STATUS_POLL_PERIOD_S = 0.002
 """Period of statusword polling by SDO when no TPDO is configured (s)."""
 MAX_MISSED_ACKS = 3
-"""Consecutive unacknowledged set-points that make a drive fault (count)."""
+"""Consecutive set-points a drive did not take that make it a fault (count), once it has also taken
+none for longer than ``status_timeout`` (a drive that is late under load is not a fault)."""
+DISABLE_RETRY_S = 0.02
+"""Period at which an unconfirmed disable is sent again (s)."""
 EMCY_LOG_LENGTH = 100
 """EMCY messages kept per drive (count)."""
+MONITOR_PERIOD_S = 0.02
+"""Period of the driver's monitor thread: heartbeat check, SDO-only status poll, disable retry (s)."""
+CALL_LOG_LENGTH = 10000
+"""send_setpoints durations kept for :meth:`CanopenDrives.report` (count)."""
 NOTIFIER_CYCLE_S = 0.05
 """Wake-up period of the CAN receive thread (s); bounds the time close() takes."""
 
@@ -116,7 +135,30 @@ class CanopenRigConfig:
                                         doc="set-point acknowledge time limit")
     enable_timeout: float = param(STATE_TRANSITION_TIMEOUT_S, unit="s", lo=0.01, hi=30.0,
                                   doc="time limit of each state-machine transition")
-    eds_file: str = param("", doc="EDS of the drives; empty = targetlock's built-in CiA 402 dictionary")
+    status_timeout: float = param(0.05, unit="s", lo=0.002, hi=5.0,
+                                  doc="no status PDO for this long while operational = link lost (fault); "
+                                      "0.02 = one 50 Hz loop period on a quiet computer")
+    eds_file: str = param("", doc="EDS or DCF of the drives (object types and sizes); "
+                                  "empty = targetlock's built-in CiA 402 dictionary")
+    operation_mode: str = param("profile_position", choices=("profile_position", "cyclic_sync_position"),
+                                doc="profile_position: set-point handshake per target (0x6060 = 1); "
+                                    "cyclic_sync_position: a target every SYNC, no handshake (0x6060 = 8)")
+    sync_period: float = param(0.005, unit="s", lo=0.001, hi=0.1,
+                               doc="cyclic_sync_position: this computer's SYNC period; the drives take the latest "
+                                   "target and send their status on every SYNC (0x60C2 interpolation period)")
+    comm_error_behaviour: int = param(0, lo=0, hi=2,
+                                      doc="0x1029:1, drive's NMT reaction to a communication error such as a lost "
+                                          "host heartbeat: 0 pre-operational, 1 no change, 2 stopped")
+    abort_connection_option: int = param(1, lo=0, hi=3,
+                                         doc="0x6007, drive's reaction to a lost host: 0 none, 1 fault, "
+                                             "2 disable voltage, 3 quick stop")
+    quick_stop_option: int = param(2, lo=0, hi=8,
+                                   doc="0x605A: 1 slow-down ramp, 2 quick-stop ramp (then switch on disabled)")
+    shutdown_option: int = param(1, lo=0, hi=1, doc="0x605B: 0 power off at once, 1 slow-down ramp first")
+    disable_operation_option: int = param(1, lo=0, hi=1, doc="0x605C: 0 power off at once, 1 slow-down ramp first")
+    halt_option: int = param(1, lo=1, hi=4, doc="0x605D: 1 slow-down ramp, 2 quick-stop ramp")
+    fault_reaction_option: int = param(2, lo=0, hi=4,
+                                       doc="0x605E: 0 power off at once, 1 slow-down ramp, 2 quick-stop ramp")
 
     def check(self, prefix: str = "") -> None:
         if len(self.node_ids) != 2:
@@ -135,6 +177,52 @@ class CanopenRigConfig:
                               f"{prefix}master_heartbeat_period = {self.master_heartbeat_period} s (or be 0)")
         if self.drive_consumer_timeout and not self.master_heartbeat_period:
             raise ConfigError(f"{prefix}drive_consumer_timeout needs master_heartbeat_period > 0")
+        if self.csp and not self.use_pdo:
+            raise ConfigError(f"{prefix}operation_mode = 'cyclic_sync_position' needs {prefix}use_pdo = true")
+        if self.csp and self.status_timeout < 2 * self.sync_period:
+            raise ConfigError(f"{prefix}status_timeout = {self.status_timeout} s must be at least twice "
+                              f"{prefix}sync_period = {self.sync_period} s")
+        if self.use_pdo and not self.csp and self.tpdo_period >= self.setpoint_ack_timeout:
+            raise ConfigError(f"{prefix}tpdo_period = {self.tpdo_period} s must be shorter than "
+                              f"{prefix}setpoint_ack_timeout = {self.setpoint_ack_timeout} s: a drive that sends its "
+                              f"status on the timer only answers a set-point up to one tpdo_period later")
+        if self.use_pdo and self.status_timeout < 2 * self.tpdo_period:
+            raise ConfigError(f"{prefix}status_timeout = {self.status_timeout} s must be at least twice "
+                              f"{prefix}tpdo_period = {self.tpdo_period} s")
+        if self.eds_file and not Path(self.eds_file).is_file():
+            raise ConfigError(f"{prefix}eds_file = {self.eds_file!r}: no such file")
+
+    def check_timing(self, loop_rate: float, prefix: str = "can.") -> None:
+        """Refuse timing settings that cannot keep a control loop at ``loop_rate`` (Hz)."""
+        period = 1.0 / loop_rate
+        if self.csp and self.sync_period > period:
+            raise ConfigError(f"{prefix}sync_period = {self.sync_period} s must not exceed the loop period "
+                              f"({period:.4g} s at {loop_rate:g} Hz): the drives would skip targets")
+        if self.use_pdo and not self.csp and self.setpoint_ack_timeout > 0.5 * period:
+            raise ConfigError(f"{prefix}setpoint_ack_timeout = {self.setpoint_ack_timeout} s must be at most half the "
+                              f"loop period ({0.5 * period:.4g} s at {loop_rate:g} Hz)")
+        if self.use_pdo and self.tpdo_period > 0.5 * period:
+            raise ConfigError(f"{prefix}tpdo_period = {self.tpdo_period} s must be at most half the loop period "
+                              f"({0.5 * period:.4g} s at {loop_rate:g} Hz): position feedback would be older than a tick")
+        if not self.use_pdo and 2 * self.sdo_timeout > period:
+            raise ConfigError(f"{prefix}sdo_timeout = {self.sdo_timeout} s must be at most half the loop period "
+                              f"({0.5 * period:.4g} s at {loop_rate:g} Hz) with use_pdo = false: every tick waits "
+                              f"on SDO answers")
+
+    @property
+    def csp(self) -> bool:
+        """Cyclic synchronous position mode with SYNC."""
+        return self.operation_mode == "cyclic_sync_position"
+
+    @property
+    def mode(self) -> int:
+        """0x6060 value of the configured operation mode."""
+        return o.MODE_CYCLIC_SYNC_POSITION if self.csp else o.MODE_PROFILE_POSITION
+
+    @property
+    def status_period(self) -> float:
+        """Expected time between status PDOs (s): the SYNC period in cyclic synchronous mode, else the event timer."""
+        return self.sync_period if self.csp else self.tpdo_period
 
     def ticks(self, rad: float) -> int:
         """Encoder ticks of an angle or angular rate (rad, rad/s, ...)."""
@@ -160,11 +248,17 @@ class CiA402Drive:
 
     Normally created and used by :class:`CanopenDrives`; thread-safe for one commanding thread plus
     :meth:`quick_stop_now` from any thread. Positions are ticks, times seconds.
+
+    Every statusword the driver receives (TPDO or SDO upload) gets a sequence number
+    (:attr:`status_seq`); each handshake notes the number when its command went out and accepts
+    only status that arrived after it, so a statusword cached from before the command (a status
+    PDO sent on a timer) never completes a handshake.
     """
 
     def __init__(self, network: canopen.Network, node_id: int, cfg: CanopenRigConfig) -> None:
         self.cfg = cfg
         self.node_id = int(node_id)
+        # An EDS/DCF path is imported by canopen (object types and sizes from the drive's own file).
         od = cfg.eds_file or o.build_object_dictionary(self.node_id)
         self.node = canopen.RemoteNode(self.node_id, od)
         network.add_node(self.node)
@@ -175,6 +269,8 @@ class CiA402Drive:
         self._cond = threading.Condition()
         self.statusword: int | None = None
         """Last statusword seen (TPDO or SDO)."""
+        self.status_seq = 0
+        """Number of statuswords received so far (TPDO or SDO): the order of status against commands."""
         self.position: int | None = None
         """Last position actual value seen (ticks)."""
         self.status_time: float | None = None
@@ -182,9 +278,14 @@ class CiA402Drive:
         self.tpdo_count = 0
         self.heartbeat_time: float | None = None
         self.heartbeat_state: int | None = None
+        self.heartbeat_seq = 0
         self.rebooted = False
         self.heartbeat_lost = False
         self.expect_operational = False
+        self.expect_enabled = False
+        """True while the driver holds this drive in operation enabled; leaving it is a fault."""
+        self.comm_error: str | None = None
+        """Why the last SDO transfer failed (no answer), until the next successful enable."""
         self.emcy_log: list[EmcyError] = []
         self.emcy_active: list[EmcyError] = []
         self.error_code: int | None = None
@@ -193,6 +294,16 @@ class CiA402Drive:
         self.homed = False
         self.pdo_active = False
         self.missed_acks = 0
+        """Consecutive set-points this drive missed: not sent (drive not ready) or never acknowledged."""
+        self.missed_total = 0
+        self.edges = 0
+        """New-set-point edges sent (each one is acknowledged in its call, late, or counted missed)."""
+        self.late_acks = 0
+        """Set-points acknowledged only after their call had returned (taken, but late)."""
+        self.last_taken = time.monotonic()
+        """Monotonic time (s) of the last set-point this drive took (or of enabling it)."""
+        self._sp_phase = "idle"      # idle | raised (bit 4 high, waiting for ack) | lowered (waiting for ack low)
+        self._sp_seq = 0             # status_seq when bit 4 last changed
         self._rpdo_cob = 0x200 + self.node_id
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self.node.emcy.add_callback(self._on_emcy)
@@ -203,6 +314,7 @@ class CiA402Drive:
         with self._cond:
             self.heartbeat_time = time.monotonic()
             self.heartbeat_state = state
+            self.heartbeat_seq += 1
             if state == 0:
                 self.rebooted = True
                 self.homed = False
@@ -229,6 +341,7 @@ class CiA402Drive:
         sw, pos = struct.unpack_from("<Hi", data)
         with self._cond:
             self.statusword = sw
+            self.status_seq += 1
             self.position = pos
             self.status_time = time.monotonic()
             self.tpdo_count += 1
@@ -244,8 +357,14 @@ class CiA402Drive:
                 raise DriveFault(f"node {self.node_id}: {what} refused by the drive: SDO abort 0x{exc.code:08X} "
                                  f"({sdo_abort_text(exc.code)})") from exc
             except SdoCommunicationError as exc:
-                raise DriveFault(f"node {self.node_id}: no SDO answer to {what} within "
-                                 f"{self.cfg.sdo_timeout * 1e3:.0f} ms (drive or bus lost)") from exc
+                text = (f"node {self.node_id}: no SDO answer to {what} within "
+                        f"{self.cfg.sdo_timeout * 1e3:.0f} ms (drive or bus lost)")
+                with self._cond:
+                    self.comm_error = text
+                raise DriveFault(text) from exc
+            except KeyError as exc:
+                raise DriveFault(f"node {self.node_id}: {what}: the object dictionary "
+                                 f"({self.cfg.eds_file or 'built-in'}) has no such object") from exc
             except (can.CanError, OSError, RuntimeError) as exc:
                 raise BusError(f"node {self.node_id}: CAN bus error during {what}: {exc}") from exc
 
@@ -267,6 +386,8 @@ class CiA402Drive:
         sw = int(self.read(o.STATUSWORD))
         with self._cond:
             self.statusword = sw
+            self.status_seq += 1
+            self._cond.notify_all()
         return sw
 
     def read_position(self) -> int:
@@ -277,24 +398,52 @@ class CiA402Drive:
 
     # ---------------------------------------------------------------- configuration
 
+    def startup_writes(self, master_node_id: int, master_period: float) -> list[tuple[int, int, int, str]]:
+        """What :meth:`configure` writes besides the PDOs: (index, subindex, value, meaning) rows."""
+        c = self.cfg
+        consumer = ((master_node_id << 16) | int(round(c.drive_consumer_timeout * 1e3))
+                    if c.drive_consumer_timeout and master_period else 0)
+        return [
+            (o.PRODUCER_HEARTBEAT, 0, max(1, int(round(c.heartbeat_period * 1e3))), "heartbeat producer time (ms)"),
+            (o.CONSUMER_HEARTBEAT, 1, consumer, "watch this computer's heartbeat: (node id << 16) | ms"),
+            (o.ERROR_BEHAVIOUR, 1, c.comm_error_behaviour, "NMT reaction to a communication error"),
+            (o.ABORT_CONNECTION_OPTION, 0, c.abort_connection_option, "reaction to a lost host"),
+            (o.QUICK_STOP_OPTION, 0, c.quick_stop_option, "quick stop option code"),
+            (o.SHUTDOWN_OPTION, 0, c.shutdown_option, "shutdown option code"),
+            (o.DISABLE_OPERATION_OPTION, 0, c.disable_operation_option, "disable operation option code"),
+            (o.HALT_OPTION, 0, c.halt_option, "halt option code"),
+            (o.FAULT_REACTION_OPTION, 0, c.fault_reaction_option, "fault reaction option code"),
+            (o.PROFILE_VELOCITY, 0, max(1, c.ticks(c.profile_velocity)), "profile velocity (tick/s)"),
+            (o.PROFILE_ACCELERATION, 0, max(1, c.ticks(c.profile_acceleration)), "profile acceleration (tick/s²)"),
+            (o.PROFILE_DECELERATION, 0, max(1, c.ticks(c.profile_deceleration)), "profile deceleration (tick/s²)"),
+            (o.QUICK_STOP_DECELERATION, 0, max(1, c.ticks(c.quick_stop_deceleration)),
+             "quick stop deceleration (tick/s²)"),
+            (o.POSITION_WINDOW, 0, c.ticks(c.position_window), "position window (ticks)"),
+        ]
+
     def configure(self, master_node_id: int, master_period: float) -> None:
         """Write the start-up configuration by SDO (node must be pre-operational)."""
-        c = self.cfg
-        self.write(o.PRODUCER_HEARTBEAT, max(1, int(round(c.heartbeat_period * 1e3))))
-        if c.drive_consumer_timeout and master_period:
-            self.write(o.CONSUMER_HEARTBEAT, (master_node_id << 16) | int(round(c.drive_consumer_timeout * 1e3)), 1)
-        else:
-            self.write(o.CONSUMER_HEARTBEAT, 0, 1)
-        if c.use_pdo:
+        for index, sub, value, _ in self.startup_writes(master_node_id, master_period):
+            self.write(index, value, sub if sub or index in (o.CONSUMER_HEARTBEAT, o.ERROR_BEHAVIOUR) else None)
+        self._check_emcy()
+        if self.cfg.use_pdo:
             self._configure_pdos()
         else:
             self._invalidate_pdos(range(1, o.N_PDO + 1))
-        self.write(o.PROFILE_VELOCITY, max(1, c.ticks(c.profile_velocity)))
-        self.write(o.PROFILE_ACCELERATION, max(1, c.ticks(c.profile_acceleration)))
-        self.write(o.PROFILE_DECELERATION, max(1, c.ticks(c.profile_deceleration)))
-        self.write(o.QUICK_STOP_DECELERATION, max(1, c.ticks(c.quick_stop_deceleration)))
-        self.write(o.POSITION_WINDOW, c.ticks(c.position_window))
-        self.set_mode(o.MODE_PROFILE_POSITION)
+        if self.cfg.csp:
+            self.write(o.INTERPOLATION_PERIOD, max(1, int(round(self.cfg.sync_period * 1e3))), 1)
+            self.write(o.INTERPOLATION_PERIOD, -3, 2)
+        self.set_mode(self.cfg.mode)
+
+    def _check_emcy(self) -> None:
+        """EMCY must be produced (0x1014 bit 31 clear): it is how a drive reports a fault at once."""
+        cob = int(self.read(o.EMCY_COB_ID))
+        if cob & o.PDO_COB_INVALID:
+            log.warning("node %d: EMCY was disabled (0x1014 = 0x%08X); enabling it", self.node_id, cob)
+            self.write(o.EMCY_COB_ID, cob & ~o.PDO_COB_INVALID)
+            if int(self.read(o.EMCY_COB_ID)) & o.PDO_COB_INVALID:
+                raise DriveFault(f"node {self.node_id}: EMCY is disabled (0x1014 bit 31) and the drive refuses "
+                                 f"to enable it")
 
     def _invalidate_pdos(self, numbers) -> None:
         for n in numbers:
@@ -313,9 +462,9 @@ class CiA402Drive:
             tp.add_variable(o.STATUSWORD)
             tp.add_variable(o.POSITION_ACTUAL)
             tp.cob_id = 0x180 + self.node_id
-            tp.trans_type = o.TRANS_EVENT_PROFILE
+            tp.trans_type = 1 if c.csp else o.TRANS_EVENT_PROFILE      # CSP: status on every SYNC
             tp.inhibit_time = 0
-            tp.event_timer = max(1, int(round(c.tpdo_period * 1e3)))
+            tp.event_timer = 0 if c.csp else max(1, int(round(c.tpdo_period * 1e3)))
             tp.rtr_allowed = False
             tp.enabled = True
             tp.save()
@@ -324,7 +473,7 @@ class CiA402Drive:
             rp.add_variable(o.CONTROLWORD)
             rp.add_variable(o.TARGET_POSITION)
             rp.cob_id = self._rpdo_cob
-            rp.trans_type = o.TRANS_EVENT_PROFILE
+            rp.trans_type = 1 if c.csp else o.TRANS_EVENT_PROFILE      # CSP: target taken at the next SYNC
             rp.rtr_allowed = False
             rp.enabled = True
             rp.save()
@@ -359,59 +508,77 @@ class CiA402Drive:
     @property
     def pdo_stale_after(self) -> float:
         """Age (s) beyond which TPDO feedback is not trusted and SDO is used instead."""
-        return max(3.0 * self.cfg.tpdo_period, 0.05)
+        return max(3.0 * self.cfg.status_period, 0.05)
 
     def state(self) -> State:
         return decode_state(self.current_statusword())
 
     def wait_status(self, predicate: Callable[[int], bool], timeout: float, what: str,
-                    abort: threading.Event | None = None) -> int:
-        """Wait until ``predicate(statusword)``; by TPDO when configured, else by SDO polling."""
+                    abort: threading.Event | None = None, after: int | None = None) -> int:
+        """Wait until a statusword received after sequence number ``after`` (default: now) satisfies
+        ``predicate``; by TPDO when configured (an SDO read when no TPDO came for two periods), else
+        by SDO polling. Status from before the command never counts."""
         deadline = time.monotonic() + timeout
-        if self.pdo_active:
-            with self._cond:
-                while True:
-                    sw = self.statusword
-                    if sw is not None and predicate(sw):
-                        return sw
-                    left = deadline - time.monotonic()
-                    if left <= 0 or (abort is not None and abort.is_set()):
-                        break
-                    self._cond.wait(min(left, 0.01))
-            sw = self.read_statusword()   # the TPDO may have been lost: ask once by SDO
+        with self._cond:
+            seen = self.status_seq if after is None else after
+            sw = self.statusword or 0
+        while True:
+            if self.pdo_active:
+                with self._cond:
+                    quiet_until = min(deadline, time.monotonic() + 2.0 * self.cfg.status_period)
+                    while self.status_seq <= seen and time.monotonic() < quiet_until:
+                        self._cond.wait(max(0.0, quiet_until - time.monotonic()))
+                    fresh = self.status_seq > seen
+                    sw, seen = (self.statusword or 0), self.status_seq
+                if not fresh:                 # the status PDO did not come: ask by SDO (also after the command)
+                    sw = self.read_statusword()
+                    with self._cond:
+                        seen = self.status_seq
+            else:
+                sw = self.read_statusword()
+                with self._cond:
+                    seen = self.status_seq
             if predicate(sw):
                 return sw
-        else:
-            while True:
-                sw = self.read_statusword()
-                if predicate(sw):
-                    return sw
-                if time.monotonic() > deadline or (abort is not None and abort.is_set()):
-                    break
+            if time.monotonic() >= deadline or (abort is not None and abort.is_set()):
+                break
+            if not self.pdo_active:
                 time.sleep(STATUS_POLL_PERIOD_S)
         raise DriveFault(f"node {self.node_id}: timed out after {timeout * 1e3:.0f} ms waiting for {what} "
                          f"(statusword 0x{sw:04X}, {decode_state(sw).value})")
 
     def fault_text(self, now: float | None = None) -> str | None:
         """Why this drive cannot be commanded, or None."""
-        now = time.monotonic() if now is None else now
         with self._cond:
             if self.rebooted:
                 return f"node {self.node_id}: drive rebooted (boot-up message); homing lost"
             if self.heartbeat_lost:
                 return f"node {self.node_id}: heartbeat lost (none for more than {self.cfg.heartbeat_timeout * 1e3:.0f} ms)"
-            if self.expect_operational and self.heartbeat_state not in (None, 5):
-                name = canopen.nmt.NMT_STATES.get(self.heartbeat_state, str(self.heartbeat_state))
-                return f"node {self.node_id}: left NMT operational (now {name})"
-            sw = self.statusword
+            texts = []
             if self.emcy_active:
                 e = self.emcy_active[-1]
-                return (f"node {self.node_id}: drive fault, EMCY 0x{e.code:04X} ({emcy_text(e.code)}), "
-                        f"error register 0x{e.register:02X}")
+                texts.append(f"node {self.node_id}: drive fault, EMCY 0x{e.code:04X} ({emcy_text(e.code)}), "
+                             f"error register 0x{e.register:02X}")
+            if self.expect_operational and self.heartbeat_state not in (None, 5):
+                name = canopen.nmt.NMT_STATES.get(self.heartbeat_state, str(self.heartbeat_state))
+                texts.append(f"node {self.node_id}: left NMT operational (now {name})")
+            if self.comm_error:
+                texts.append(self.comm_error)
+            now = time.monotonic() if now is None else now
+            if (self.pdo_active and self.expect_operational and self.heartbeat_state == 5
+                    and self.status_time is not None and now - self.status_time > self.cfg.status_timeout):
+                texts.append(f"node {self.node_id}: no status PDO for {(now - self.status_time) * 1e3:.0f} ms "
+                             f"(link lost?)")
+            sw = self.statusword
+            if texts:
+                return "; ".join(texts)
         if sw is not None and decode_state(sw) in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             code = self.error_code
             text = f", error code 0x{code:04X} ({emcy_text(code)})" if code else ""
             return f"node {self.node_id}: drive in fault state (statusword 0x{sw:04X}){text}"
+        if self.expect_enabled and sw is not None and decode_state(sw) != State.OPERATION_ENABLED:
+            return (f"node {self.node_id}: left operation enabled without a fault (now {decode_state(sw).value}, "
+                    f"statusword 0x{sw:04X})")
         return None
 
     def check_heartbeat(self, now: float) -> None:
@@ -455,6 +622,7 @@ class CiA402Drive:
 
         Does nothing when PDOs are not active; :meth:`disable` then does it by SDO.
         """
+        self.expect_enabled = False
         if self.pdo_active:
             try:
                 self.network.send_message(self._rpdo_cob, struct.pack("<Hi", o.CW_QUICK_STOP, self.target))
@@ -462,14 +630,21 @@ class CiA402Drive:
             except (can.CanError, OSError, RuntimeError) as exc:
                 log.error("node %d: quick stop not sent: %s", self.node_id, exc)
 
+    def _status_seq_now(self) -> int:
+        with self._cond:
+            return self.status_seq
+
     def transition(self, cw: int, want: tuple[State, ...], what: str) -> None:
         self.write(o.CONTROLWORD, cw)   # state machine always by confirmed SDO
+        after = self._status_seq_now()  # only status produced after the drive took the command
         self.controlword = cw
-        self.wait_status(lambda sw: decode_state(sw) in want, self.cfg.enable_timeout, what)
+        self.wait_status(lambda sw: decode_state(sw) in want, self.cfg.enable_timeout, what, after=after)
 
     def fault_reset(self) -> None:
         """Fault reset (rising edge of controlword bit 7) and clear the driver's fault memory."""
         state = decode_state(self.read_statusword())
+        with self._cond:
+            self.comm_error = None          # the drive answered SDO again
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             if state == State.FAULT_REACTION_ACTIVE:
                 self.wait_status(lambda sw: decode_state(sw) == State.FAULT, self.cfg.enable_timeout, "fault state")
@@ -482,6 +657,27 @@ class CiA402Drive:
             if self.heartbeat_time is not None and time.monotonic() - self.heartbeat_time <= self.cfg.heartbeat_timeout:
                 self.heartbeat_lost = False
             self.rebooted = False
+
+    def ensure_operational(self) -> None:
+        """NMT start, confirmed by a heartbeat sent after it: brings back a node that left operational
+        (e.g. pre-operational after a lost host heartbeat); harmless to a node that is operational."""
+        with self._cond:
+            state, seen = self.heartbeat_state, self.heartbeat_seq
+        if state != 5:
+            log.warning("node %d is NMT %s: sending NMT start", self.node_id,
+                        canopen.nmt.NMT_STATES.get(state, str(state)))
+        try:
+            self.node.nmt.send_command(0x01)
+        except (can.CanError, OSError, RuntimeError) as exc:
+            raise BusError(f"node {self.node_id}: CAN bus error sending NMT start: {exc}") from exc
+        deadline = time.monotonic() + max(BOOT_WAIT_S, 3 * self.cfg.heartbeat_period)
+        with self._cond:
+            while self.heartbeat_seq <= seen or self.heartbeat_state != 5:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    name = canopen.nmt.NMT_STATES.get(self.heartbeat_state, str(self.heartbeat_state))
+                    raise DriveFault(f"node {self.node_id}: still NMT {name} after NMT start")
+                self._cond.wait(left)
 
     def enable_operation(self) -> None:
         """Walk the CiA 402 state machine to operation enabled (fault reset first if needed)."""
@@ -510,9 +706,15 @@ class CiA402Drive:
             raise DriveFault(f"node {self.node_id}: did not reach operation enabled")
         self.target = self.read_position()
         self.controlword = o.CW_ENABLE_OPERATION
+        self._ready_for_setpoints()
+        self.last_taken = time.monotonic()
+        self.expect_enabled = True
 
-    def disable_power(self) -> None:
-        """Quick stop, then disable voltage (power stage off). Best effort: errors are logged."""
+    def disable_power(self) -> bool:
+        """Quick stop, then disable voltage (power stage off). Best effort: errors are logged.
+
+        True when a statusword read after the command confirms the power stage is off."""
+        self.expect_enabled = False
         try:
             state = decode_state(self.read_statusword())
             if state == State.OPERATION_ENABLED:
@@ -525,10 +727,29 @@ class CiA402Drive:
             if decode_state(self.read_statusword()) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self.write(o.CONTROLWORD, o.CW_DISABLE_VOLTAGE)
             self.controlword = o.CW_DISABLE_VOLTAGE
+            return self.power_off_confirmed(self.read_statusword())
         except DriveFault as exc:
-            log.error("node %d: disable incomplete: %s", self.node_id, exc)
+            log.error("node %d: disable by SDO incomplete: %s", self.node_id, exc)
+        if not self.pdo_active:
+            return False
+        # SDO does not get through (a hung SDO server): disable voltage by RPDO, confirmed by a later status PDO
+        after = self._status_seq_now()
+        try:
+            self.send_controlword(o.CW_DISABLE_VOLTAGE)
+            return self._status_since(after, self.power_off_confirmed, time.monotonic() + 3 * self.cfg.status_period,
+                                      threading.Event()) is not None
+        except DriveFault as exc:
+            log.error("node %d: disable by RPDO failed: %s", self.node_id, exc)
+            return False
 
-    def start_homing(self) -> None:
+    @staticmethod
+    def power_off_confirmed(statusword: int) -> bool:
+        """The statusword shows the power stage off (or never on)."""
+        return decode_state(statusword) in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                                             State.NOT_READY_TO_SWITCH_ON, State.FAULT)
+
+    def start_homing(self) -> int:
+        """Start the homing procedure; returns the status sequence number the answer must come after."""
         c = self.cfg
         self.set_mode(o.MODE_HOMING)
         self.write(o.HOMING_METHOD, c.homing_method)
@@ -539,12 +760,14 @@ class CiA402Drive:
         self.write(o.CONTROLWORD, o.CW_ENABLE_OPERATION)
         self.write(o.CONTROLWORD, o.CW_ENABLE_OPERATION | o.CW_HOMING_START)
         self.controlword = o.CW_ENABLE_OPERATION | o.CW_HOMING_START
+        return self._status_seq_now()
 
-    def finish_homing(self, deadline: float) -> None:
+    def finish_homing(self, deadline: float, after: int) -> None:
+        """Wait for homing attained (or error) in status received after ``after``, then back to profile position."""
         def done(sw: int) -> bool:
             return bool(sw & (o.SW_HOMING_ERROR | o.SW_FAULT)) or (
                 sw & (o.SW_HOMING_ATTAINED | o.SW_TARGET_REACHED) == (o.SW_HOMING_ATTAINED | o.SW_TARGET_REACHED))
-        sw = self.wait_status(done, max(0.0, deadline - time.monotonic()), "homing attained")
+        sw = self.wait_status(done, max(0.0, deadline - time.monotonic()), "homing attained", after=after)
         self.write(o.CONTROLWORD, o.CW_ENABLE_OPERATION)
         self.controlword = o.CW_ENABLE_OPERATION
         if sw & o.SW_FAULT:
@@ -552,52 +775,134 @@ class CiA402Drive:
         if sw & o.SW_HOMING_ERROR:
             raise DriveFault(f"node {self.node_id}: homing error (statusword 0x{sw:04X}, method "
                              f"{self.cfg.homing_method})")
-        self.set_mode(o.MODE_PROFILE_POSITION)
+        self.set_mode(self.cfg.mode)
         c = self.cfg
         self.write(o.SOFTWARE_LIMITS, c.min_ticks, 1)
         self.write(o.SOFTWARE_LIMITS, c.max_ticks, 2)
         self.target = self.read_position()
         self.write(o.TARGET_POSITION, self.target)
+        self._ready_for_setpoints()
         self.homed = True
 
     # ---------------------------------------------------------------- set-point handshake
+    #
+    # Profile position, CiA 402 strictly: raise bit 4 only when a status received after bit 4 was
+    # last lowered shows the acknowledge (bit 12) low; the set-point is taken when a status received
+    # after the raise shows the acknowledge high; then lower bit 4. Nothing here waits past the
+    # call's deadline: a drive that is late is counted (missed) and caught up on the next call.
 
-    def request_setpoint(self, target: int, abort: threading.Event) -> None:
-        """Phase 1: target + new set-point bit (after the previous acknowledge has dropped)."""
+    def _ready_for_setpoints(self) -> None:
+        """After the last controlword by SDO: the first set-point may go at once if the acknowledge is low."""
+        sw = self.read_statusword()               # read after the command: not a stale status
+        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK and not self.cfg.csp else "idle"
+        self._sp_seq = self._status_seq_now()
+
+    def _status_since(self, seq: int, predicate: Callable[[int], bool], deadline: float,
+                      abort: threading.Event) -> int | None:
+        """A statusword received after ``seq`` satisfying ``predicate`` before ``deadline``, else None.
+
+        PDO mode waits on the status PDOs (no SDO); SDO mode reads the statusword (each read is after the command)."""
         if self.pdo_active:
             with self._cond:
-                sw = self.statusword
-                if sw is not None and decode_state(sw) != State.OPERATION_ENABLED:
-                    raise DriveFault(f"node {self.node_id}: not in operation enabled but {decode_state(sw).value} "
-                                     f"(statusword 0x{sw:04X}); call enable()")
-                deadline = time.monotonic() + self.cfg.setpoint_ack_timeout
-                while self.statusword is not None and self.statusword & o.SW_SETPOINT_ACK:
+                while True:
+                    sw = self.statusword
+                    if self.status_seq > seq and sw is not None and predicate(sw):
+                        return sw
                     left = deadline - time.monotonic()
                     if left <= 0 or abort.is_set():
-                        break
+                        return None
                     self._cond.wait(left)
+        while True:
+            sw = self.read_statusword()
+            if predicate(sw):
+                return sw
+            if time.monotonic() >= deadline or abort.is_set():
+                return None
+            time.sleep(STATUS_POLL_PERIOD_S)
+
+    def _check_enabled(self, sw: int | None) -> None:
+        if sw is not None and decode_state(sw) != State.OPERATION_ENABLED:
+            raise DriveFault(f"node {self.node_id}: not in operation enabled but {decode_state(sw).value} "
+                             f"(statusword 0x{sw:04X}); call enable()")
+
+    def request_setpoint(self, target: int, deadline: float, abort: threading.Event) -> bool:
+        """Phase 1: send ``target`` with a new-set-point edge if the drive is ready for one.
+
+        False when the previous set-point is still unanswered (the drive is late): nothing new is sent."""
+        with self._cond:
+            self._check_enabled(self.statusword)
+        if self._sp_phase == "raised":
+            # the previous edge was not acknowledged within its call: if it has been by now, it was late
+            if self._status_since(self._sp_seq, lambda sw: bool(sw & o.SW_SETPOINT_ACK), deadline, abort) is not None:
+                self.late_acks += 1
+                self._taken()
+            else:
+                self._missed("never acknowledged")
+            self._lower()
+        if self._sp_phase == "lowered":
+            ack_low = self._status_since(self._sp_seq, lambda sw: not sw & o.SW_SETPOINT_ACK or bool(sw & o.SW_FAULT),
+                                         deadline, abort)
+            if ack_low is None:
+                self._missed("not sent: the drive did not show the acknowledge low in time")
+                return False
+            self._check_enabled(ack_low)
+            self._sp_phase = "idle"
         if abort.is_set():
             raise MotionRefused("set-point interrupted: drives are being disabled")
+        self._sp_seq = self._status_seq_now()
         self.send_controlword(o.CW_ENABLE_OPERATION | o.CW_NEW_SETPOINT | o.CW_CHANGE_IMMEDIATELY, target)
-
-    def await_ack(self, abort: threading.Event) -> bool:
-        """Phase 2: wait for statusword bit 12; False when it did not come in time."""
-        try:
-            self.wait_status(lambda sw: bool(sw & (o.SW_SETPOINT_ACK | o.SW_FAULT)), self.cfg.setpoint_ack_timeout,
-                             "set-point acknowledge", abort)
-        except DriveFault:
-            if abort.is_set():
-                return True
-            self.missed_acks += 1
-            log.warning("node %d: set-point %d not acknowledged within %.0f ms (%d in a row)", self.node_id,
-                        self.target, self.cfg.setpoint_ack_timeout * 1e3, self.missed_acks)
-            return False
-        self.missed_acks = 0
+        self._sp_phase = "raised"
+        self.edges += 1
         return True
 
-    def release_setpoint(self) -> None:
-        """Phase 3: lower the new set-point bit (keep change-immediately)."""
+    def await_ack(self, deadline: float, abort: threading.Event) -> bool:
+        """Phase 2: the acknowledge of *this* edge (status after the raise); on it, lower bit 4 (phase 3).
+
+        False when it did not come before ``deadline``: bit 4 stays high and the next call looks again."""
+        sw = self._status_since(self._sp_seq, lambda s: bool(s & (o.SW_SETPOINT_ACK | o.SW_FAULT)), deadline, abort)
+        if sw is None or sw & o.SW_FAULT:
+            return False
+        self._taken()
+        self._lower()
+        return True
+
+    def _lower(self) -> None:
+        self._sp_seq = self._status_seq_now()
         self.send_controlword(o.CW_ENABLE_OPERATION | o.CW_CHANGE_IMMEDIATELY)
+        self._sp_phase = "lowered"
+
+    def send_cyclic_target(self, target: int) -> bool:
+        """Cyclic synchronous position: send the target for the next SYNC (no handshake, no waiting).
+
+        Returns whether the drive followed the previous target: a status received since the
+        previous call shows bit 12 ("drive follows the command value"); otherwise it counts as missed."""
+        with self._cond:
+            sw = self.statusword
+            fresh = self.status_seq > self._sp_seq
+            self._check_enabled(sw)
+            self._sp_seq = self.status_seq
+        following = fresh and sw is not None and bool(sw & o.SW_FOLLOWING)
+        if following:
+            self._taken()
+        elif self._sp_phase != "idle":
+            self._missed("no status showing the drive following since the last target")
+        self._sp_phase = "sent"
+        self.send_controlword(o.CW_ENABLE_OPERATION, target)
+        self.edges += 1
+        return following
+
+    def _taken(self) -> None:
+        self.missed_acks = 0
+        self.last_taken = time.monotonic()
+
+    def setpoints_lost(self, now: float) -> bool:
+        """Persistent misses: several in a row and none taken for longer than ``status_timeout``."""
+        return self.missed_acks >= MAX_MISSED_ACKS and now - self.last_taken > self.cfg.status_timeout
+
+    def _missed(self, why: str) -> None:
+        self.missed_acks += 1
+        self.missed_total += 1
+        log.warning("node %d: set-point missed (%s; %d in a row)", self.node_id, why, self.missed_acks)
 
 
 class CanopenDrives(Drives):
@@ -620,7 +925,11 @@ class CanopenDrives(Drives):
         self._master_hb = None
         self._enabled = False
         self._bus_error: str | None = None
-        self.stats = {"setpoints": 0, "sdo_position_reads": 0, "pdo_position_reads": 0, "missed_acks": 0}
+        self.stats = {"setpoints": 0, "acked_in_call": 0, "sdo_position_reads": 0, "pdo_position_reads": 0,
+                      "disable_retries": 0}
+        self._call_times: list[float] = []      # duration of each send_setpoints call (s), last CALL_LOG_LENGTH
+        self._want_disabled = False
+        self._disable_unconfirmed: str | None = None
         lo, hi = config.min_ticks, config.max_ticks
         self._limits = (np.full(2, lo, dtype=np.int64), np.full(2, hi, dtype=np.int64))
         if start:
@@ -640,6 +949,8 @@ class CanopenDrives(Drives):
             self.drives = tuple(CiA402Drive(net, nid, c) for nid in c.node_ids)
             if c.master_heartbeat_period > 0:
                 self._master_hb = net.send_periodic(0x700 + c.master_node_id, [0x05], c.master_heartbeat_period)
+            if c.csp:
+                net.sync.start(c.sync_period)          # SYNC producer: the drives' cycle
             for d in self.drives:
                 d.node.nmt.send_command(0x80)          # pre-operational: configuration by SDO
             for d in self.drives:
@@ -691,7 +1002,7 @@ class CanopenDrives(Drives):
         d.pdo_active = c.use_pdo
 
     def _watch(self) -> None:
-        period = min(0.02, self.config.heartbeat_timeout / 4)
+        period = min(MONITOR_PERIOD_S, self.config.heartbeat_timeout / 4)
         while not self._monitor_stop.wait(period):
             now = time.monotonic()
             for d in self.drives:
@@ -699,8 +1010,31 @@ class CanopenDrives(Drives):
             net = self.network
             if net is not None and net.notifier is not None and net.notifier.exception is not None:
                 self._bus_error = f"CAN receive failed: {net.notifier.exception}"
+            if not self.config.use_pdo and self._enabled and self._lock.acquire(blocking=False):
+                # SDO-only: nothing reports the drives' state by itself, so ask every period
+                try:
+                    for d in self.drives:
+                        d.read_statusword()
+                except DriveFault:
+                    pass                      # recorded in the drive's comm_error, shown by fault()
+                finally:
+                    self._lock.release()
             if self.fault() is not None:
                 self._abort.set()
+            if self._want_disabled and self._disable_unconfirmed is not None:
+                self._retry_disable()
+
+    def _retry_disable(self) -> None:
+        """A disable that was not confirmed is sent again, every monitor period, until the statusword confirms it."""
+        if not self._lock.acquire(timeout=DISABLE_RETRY_S):
+            return
+        try:
+            if not self._want_disabled:
+                return
+            self.stats["disable_retries"] += 1
+            self._disable_all()
+        finally:
+            self._lock.release()
 
     def close(self) -> None:
         """Disable the drives, stop the heartbeat producer and monitor, release the bus."""
@@ -719,6 +1053,11 @@ class CanopenDrives(Drives):
             if self._monitor is not None:
                 self._monitor.join(timeout=1.0)
                 self._monitor = None
+            if self.config.csp:
+                try:
+                    self.network.sync.stop()
+                except Exception:  # noqa: BLE001 - bus may be gone already
+                    pass
             if self._master_hb is not None:
                 try:
                     self._master_hb.stop()
@@ -755,7 +1094,24 @@ class CanopenDrives(Drives):
         if self._bus_error:
             return self._bus_error
         texts = [t for t in (d.fault_text() for d in self.drives) if t]
+        if self._disable_unconfirmed:
+            texts.append(self._disable_unconfirmed)
         return "; ".join(texts) if texts else None
+
+    def report(self) -> dict:
+        """Figures for a run summary: set-point calls, edges sent, acknowledged in the call, late
+        (taken after the call returned) and missed (not sent, or never acknowledged), disable retries,
+        and the time each :meth:`send_setpoints` call took (ms, median / p99 / max)."""
+        out = dict(self.stats)
+        out["edges"] = sum(d.edges for d in self.drives)
+        out["late_acks"] = sum(d.late_acks for d in self.drives)
+        out["missed"] = sum(d.missed_total for d in self.drives)
+        out["missed_per_drive"] = {d.node_id: d.missed_total for d in self.drives}
+        times = np.array(self._call_times) * 1e3
+        if times.size:
+            out["setpoint_call_ms"] = {"p50": float(np.percentile(times, 50)), "p99": float(np.percentile(times, 99)),
+                                       "max": float(times.max())}
+        return out
 
     def _raise_if_fault(self) -> None:
         if self.fault() is None:
@@ -793,10 +1149,9 @@ class CanopenDrives(Drives):
                 deadline = time.monotonic() + self.config.homing_timeout
                 for d in self.drives:
                     d.homed = False
-                for d in self.drives:
-                    d.start_homing()
-                for d in self.drives:
-                    d.finish_homing(deadline)
+                started = [d.start_homing() for d in self.drives]
+                for d, after in zip(self.drives, started):
+                    d.finish_homing(deadline, after)
             self._guard(go)
             log.info("drives homed at %s ticks", self.positions().tolist())
 
@@ -818,26 +1173,42 @@ class CanopenDrives(Drives):
             if not self._enabled or self._abort.is_set():
                 raise MotionRefused("refusing motion: drives are disabled (call enable() to resume)")
             lo, hi = self._limits
-            targets = np.clip(np.rint(t.astype(float)).astype(np.int64), lo, hi)
+            # clamp in floating point first: a cast of a huge finite value to int64 wraps around
+            targets = np.clip(np.rint(t.astype(float)), lo, hi).astype(np.int64)
 
             def go() -> None:
-                for d, target in zip(self.drives, targets):
-                    d.request_setpoint(int(target), self._abort)
-                acked = [d.await_ack(self._abort) for d in self.drives]
+                start = time.monotonic()
+                if self.config.csp:
+                    followed = [d.send_cyclic_target(int(target)) for d, target in zip(self.drives, targets)]
+                    self.stats["acked_in_call"] += followed.count(True)
+                    self.stats["setpoints"] += 1
+                    self._book_call(start)
+                    return
+                deadline = start + self.config.setpoint_ack_timeout   # the whole call's budget, both drives
+                raised = [d.request_setpoint(int(target), deadline, self._abort)
+                          for d, target in zip(self.drives, targets)]
+                taken = [r and d.await_ack(deadline, self._abort) for d, r in zip(self.drives, raised)]
                 if self._abort.is_set():
                     raise MotionRefused("set-point interrupted: drives are being disabled")
-                for d in self.drives:
-                    d.release_setpoint()
-                self.stats["missed_acks"] += acked.count(False)
+                self.stats["acked_in_call"] += taken.count(True)
                 self.stats["setpoints"] += 1
-                for d in self.drives:
-                    if d.missed_acks >= MAX_MISSED_ACKS:
-                        raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not acknowledged")
+                self._book_call(start)
             self._guard(go)
             self._raise_if_fault()
 
+    def _book_call(self, start: float) -> None:
+        """Record one set-point call's duration; persistent misses on a drive are a fault."""
+        now = time.monotonic()
+        self._call_times.append(now - start)
+        del self._call_times[:-CALL_LOG_LENGTH]
+        for d in self.drives:
+            if d.setpoints_lost(now):
+                raise DriveFault(f"node {d.node_id}: {d.missed_acks} set-points in a row not taken, none for "
+                                 f"{(now - d.last_taken) * 1e3:.0f} ms ({d.missed_total} missed in all)")
+
     def positions(self) -> np.ndarray:
-        """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO."""
+        """Measured positions (ticks): from TPDO1 when fresh, otherwise read by SDO (not when the
+        drive is known to be faulty or lost: then :class:`DriveFault` at once)."""
         out = np.empty(len(self.drives), dtype=np.int64)
 
         def go() -> None:
@@ -851,6 +1222,10 @@ class CanopenDrives(Drives):
                     out[i] = pos
                     self.stats["pdo_position_reads"] += 1
                 else:
+                    if d.pdo_active:
+                        text = d.fault_text(now)
+                        if text:                  # a drive known lost is reported, not waited for by SDO
+                            raise DriveFault(text)
                     with self._lock:
                         out[i] = d.read_position()
                     self.stats["sdo_position_reads"] += 1
@@ -862,18 +1237,35 @@ class CanopenDrives(Drives):
         return [decode_state(d.current_statusword()) for d in self.drives]
 
     def disable(self) -> None:
-        """Stop commanding and remove power: quick stop, then disable voltage. Any thread."""
+        """Stop commanding and remove power: quick stop, then disable voltage. Any thread.
+
+        The power stage counts as off only when a statusword read after the command shows it; until
+        then :meth:`fault` says so (loudly logged) and the monitor sends the disable again every
+        period, also after a link came back."""
         self._abort.set()
         self._enabled = False
+        self._want_disabled = True
         for d in self.drives:
             d.quick_stop_now()
         got = self._lock.acquire(timeout=max(1.0, 3 * self.config.sdo_timeout))
         try:
-            for d in self.drives:
-                d.disable_power()
+            self._disable_all()
         finally:
             if got:
                 self._lock.release()
+
+    def _disable_all(self) -> None:
+        unconfirmed = [d.node_id for d in self.drives if not d.disable_power()]
+        if unconfirmed:
+            if self._disable_unconfirmed is None:
+                log.error("DISABLE NOT CONFIRMED by node(s) %s: the power stage may still be on; "
+                          "retrying every %.0f ms", unconfirmed, MONITOR_PERIOD_S * 1e3)
+            self._disable_unconfirmed = (f"disable not confirmed by node(s) {unconfirmed}: power stage may be on "
+                                         f"(retrying)")
+        else:
+            if self._disable_unconfirmed is not None:
+                log.warning("disable confirmed by all drives after retries")
+            self._disable_unconfirmed = None
 
     def enable(self) -> None:
         """Explicit (re-)enable: fault reset where needed, then operation enabled on both drives."""
@@ -889,8 +1281,22 @@ class CanopenDrives(Drives):
                 for d in self.drives:
                     if d.rebooted:
                         self._reconfigure(d)
+                    else:
+                        d.ensure_operational()
                     d.enable_operation()
-            self._guard(go)
-            self._abort.clear()
-            self._raise_if_fault()
+            try:
+                self._want_disabled = False
+                self._disable_unconfirmed = None
+                self._guard(go)
+                self._abort.clear()
+                self._raise_if_fault()
+            except BaseException:
+                # never leave a drive powered after a failed enable
+                self._abort.set()
+                self._want_disabled = True
+                for d in self.drives:
+                    d.quick_stop_now()
+                self._disable_all()
+                raise
+            self._disable_unconfirmed = None
             self._enabled = True

@@ -24,6 +24,8 @@ DEVICE_NAME = 0x1008
 CONSUMER_HEARTBEAT = 0x1016        # array of u32: (node id << 16) | time (ms)
 PRODUCER_HEARTBEAT = 0x1017        # u16, ms
 IDENTITY = 0x1018
+EMCY_COB_ID = 0x1014               # u32; bit 31 set = EMCY not produced
+ERROR_BEHAVIOUR = 0x1029           # array of u8; sub 1: communication error (0 pre-op, 1 no change, 2 stopped)
 RPDO_COMM, RPDO_MAP = 0x1400, 0x1600
 TPDO_COMM, TPDO_MAP = 0x1800, 0x1A00
 N_PDO = 4                          # PDOs 1..4 of each direction
@@ -35,7 +37,12 @@ TRANS_EVENT_MANUFACTURER, TRANS_EVENT_PROFILE = 254, 255
 ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
+ABORT_CONNECTION_OPTION = 0x6007  # i16: reaction to a lost host (0 none, 1 fault, 2 disable voltage, 3 quick stop)
 QUICK_STOP_OPTION = 0x605A
+SHUTDOWN_OPTION = 0x605B
+DISABLE_OPERATION_OPTION = 0x605C
+HALT_OPTION = 0x605D
+FAULT_REACTION_OPTION = 0x605E
 MODES_OF_OPERATION = 0x6060
 MODES_DISPLAY = 0x6061
 POSITION_DEMAND = 0x6062
@@ -52,10 +59,12 @@ QUICK_STOP_DECELERATION = 0x6085
 HOMING_METHOD = 0x6098
 HOMING_SPEEDS = 0x6099             # sub 1: search for switch, sub 2: search for zero (tick/s)
 HOMING_ACCELERATION = 0x609A
+INTERPOLATION_PERIOD = 0x60C2      # sub 1: value, sub 2: index (period = value x 10^index s)
 SUPPORTED_DRIVE_MODES = 0x6502
 
 MODE_PROFILE_POSITION = 1
 MODE_HOMING = 6
+MODE_CYCLIC_SYNC_POSITION = 8
 
 # Homing methods that take the current position as home without motion (CiA 402-2).
 HOMING_ON_CURRENT_POSITION = (35, 37)
@@ -89,6 +98,7 @@ SW_SETPOINT_ACK = 1 << 12          # profile position mode
 SW_HOMING_ATTAINED = 1 << 12       # homing mode
 SW_FOLLOWING_ERROR = 1 << 13       # profile position mode
 SW_HOMING_ERROR = 1 << 13          # homing mode
+SW_FOLLOWING = 1 << 12             # cyclic synchronous position: the drive follows the target (0 = ignored)
 
 # EMCY codes used by the simulated drive and named in fault messages (CiA 301 / 402).
 EMCY_TEXT = {
@@ -119,6 +129,8 @@ SDO_ABORT_TEXT = {
     0x06070010: "data type does not match, length of service parameter does not match",
     0x06090011: "sub-index does not exist",
     0x06090030: "value range of parameter exceeded",
+    0x06090031: "value of parameter written too high",
+    0x06090032: "value of parameter written too low",
     0x08000000: "general error",
     0x08000022: "data cannot be transferred or stored because of the present device state",
 }
@@ -256,6 +268,10 @@ def build_object_dictionary(node_id: int) -> ObjectDictionary:
              _var("Number of entries", CONSUMER_HEARTBEAT, 0, od.UNSIGNED8, "ro", 1),
              _var("Consumer heartbeat time 1", CONSUMER_HEARTBEAT, 1, od.UNSIGNED32, "rw", 0)]),
          _var("Producer heartbeat time", PRODUCER_HEARTBEAT, 0, od.UNSIGNED16, "rw", 0),
+         _var("COB-ID EMCY", EMCY_COB_ID, 0, od.UNSIGNED32, "rw", 0x80 + node_id),
+         _array("Error behaviour", ERROR_BEHAVIOUR, [
+             _var("Number of entries", ERROR_BEHAVIOUR, 0, od.UNSIGNED8, "ro", 1),
+             _var("Communication error", ERROR_BEHAVIOUR, 1, od.UNSIGNED8, "rw", 0)]),
          _record("Identity object", IDENTITY, [
              _var("Number of entries", IDENTITY, 0, od.UNSIGNED8, "ro", 4),
              _var("Vendor-ID", IDENTITY, 1, od.UNSIGNED32, "ro", 0),
@@ -294,7 +310,12 @@ def build_object_dictionary(node_id: int) -> ObjectDictionary:
          _var("Error code", ERROR_CODE, 0, od.UNSIGNED16, "ro", 0, mappable=True),
          _var("Controlword", CONTROLWORD, 0, od.UNSIGNED16, "rw", 0, mappable=True),
          _var("Statusword", STATUSWORD, 0, od.UNSIGNED16, "ro", 0, mappable=True),
+         _var("Abort connection option code", ABORT_CONNECTION_OPTION, 0, od.INTEGER16, "rw", 1),
          _var("Quick stop option code", QUICK_STOP_OPTION, 0, od.INTEGER16, "rw", 2),
+         _var("Shutdown option code", SHUTDOWN_OPTION, 0, od.INTEGER16, "rw", 0),
+         _var("Disable operation option code", DISABLE_OPERATION_OPTION, 0, od.INTEGER16, "rw", 1),
+         _var("Halt option code", HALT_OPTION, 0, od.INTEGER16, "rw", 1),
+         _var("Fault reaction option code", FAULT_REACTION_OPTION, 0, od.INTEGER16, "rw", 2),
          _var("Modes of operation", MODES_OF_OPERATION, 0, od.INTEGER8, "rw", MODE_PROFILE_POSITION, mappable=True),
          _var("Modes of operation display", MODES_DISPLAY, 0, od.INTEGER8, "ro", MODE_PROFILE_POSITION,
               mappable=True),
@@ -318,7 +339,11 @@ def build_object_dictionary(node_id: int) -> ObjectDictionary:
              _var("Speed during search for switch", HOMING_SPEEDS, 1, od.UNSIGNED32, "rw", 20000),
              _var("Speed during search for zero", HOMING_SPEEDS, 2, od.UNSIGNED32, "rw", 5000)]),
          _var("Homing acceleration", HOMING_ACCELERATION, 0, od.UNSIGNED32, "rw", 1000000),
+         _record("Interpolation time period", INTERPOLATION_PERIOD, [
+             _var("Highest sub-index supported", INTERPOLATION_PERIOD, 0, od.UNSIGNED8, "ro", 2),
+             _var("Interpolation time period value", INTERPOLATION_PERIOD, 1, od.UNSIGNED8, "rw", 1),
+             _var("Interpolation time index", INTERPOLATION_PERIOD, 2, od.INTEGER8, "rw", -3)]),
          _var("Supported drive modes", SUPPORTED_DRIVE_MODES, 0, od.UNSIGNED32, "ro",
-              (1 << (MODE_PROFILE_POSITION - 1)) | (1 << (MODE_HOMING - 1))),
+              (1 << (MODE_PROFILE_POSITION - 1)) | (1 << (MODE_HOMING - 1)) | (1 << (MODE_CYCLIC_SYNC_POSITION - 1))),
          )
     return d

@@ -281,6 +281,13 @@ class SafeDrives(Drives):
     def positions(self) -> np.ndarray:
         return self._call("reading positions", self.inner.positions)
 
+    def report(self) -> dict:
+        """The supervisor's counts (sent, clamped, rate limited, held, refused, trips) and the drives' own figures."""
+        s = self.stats
+        return {"supervisor": {"sent": s.sent, "clamped": s.clamped, "rate_limited": s.rate_limited,
+                               "nonfinite": s.nonfinite, "held": s.held, "refused": s.refused, "trips": list(s.trips)},
+                "drives": self.inner.report()}
+
     def note_observation(self, valid: bool, now: float) -> None:
         """Tell the supervisor whether the target was seen at time ``now`` (s, the caller's clock)."""
         if valid:

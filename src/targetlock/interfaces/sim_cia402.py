@@ -9,14 +9,21 @@ of :func:`.od402.build_object_dictionary` and implements what the driver needs f
 * profile position mode (0x6060 = 1) with the new-set-point handshake (controlword bit 4 new
   set-point, bit 5 change set immediately, bit 6 relative, bit 8 halt; statusword bit 12 set-point
   acknowledge, bit 10 target reached, bit 11 internal limit);
+* cyclic synchronous position mode (0x6060 = 8): each target (0x607A, normally by a SYNC-driven
+  RPDO) becomes the motor's demand at once; statusword bit 12 shows that the drive follows;
 * homing mode (0x6060 = 6): methods 35/37 take the current position as home; methods 1-34 run a
   short homing motion to the handle's neutral (angle 0) at the homing speed (0x6099:1) and declare
   the home offset (0x607C) there; other methods end in a homing error (statusword bit 13);
 * PDOs configured by SDO as CiA 301 prescribes (mapping only while the PDO is not valid):
   event-driven TPDOs (transmission type 254/255) sent on every statusword change and on their event
   timer (0x1800:5) with the inhibit time (0x1800:3); SYNC-driven TPDOs (1-240) and RPDOs;
-* EMCY producer, fault injection (:meth:`SimCiA402Drive.inject_fault`), fault reset, heartbeat
-  consumer (0x1016) for the master's heartbeat, and a "silent" mode that cuts the node off the bus.
+* EMCY producer (0x1014), fault injection (:meth:`SimCiA402Drive.inject_fault`), fault reset, heartbeat
+  consumer (0x1016) for the master's heartbeat with the reaction the master configured: abort
+  connection option 0x6007 (none / fault / disable voltage / quick stop) and error behaviour
+  0x1029:1 (NMT pre-operational / no change / stopped), and a "silent" mode that cuts the node off the bus;
+* optional real-device behaviours (:class:`SimDriveBehaviour`) that independent drives showed:
+  a strict set-point handshake processed in the drive's cycle, status PDOs on their timer only,
+  slow SDO answers and a node that stops answering SDO.
 
 The motor follows the twin's drive model (:func:`targetlock.model.drives.drive_step`): the handle
 angle theta (rad) approaches the demanded angle with the model's time constant and rate limit
@@ -54,7 +61,7 @@ from . import od402 as o
 from .canbus import CanBusConfig, open_bus
 from .od402 import Command, State, decode_command
 
-__all__ = ["SimCiA402Drive", "SimDriveSet", "run_sim_drives", "main", "add_sim_rig_arguments", "run_sim_rig",
+__all__ = ["SimCiA402Drive", "SimDriveBehaviour", "SimDriveSet", "run_sim_drives", "main", "add_sim_rig_arguments", "run_sim_rig",
            "PHYSICS_STEP_S"]
 
 log = logging.getLogger(__name__)
@@ -71,6 +78,22 @@ _ABORT_STATE = 0x08000022
 _ABORT_NOT_MAPPABLE = 0x06040041
 _ABORT_PDO_LENGTH = 0x06040042
 _ABORT_INCOMPATIBLE = 0x06040043
+
+
+@dataclass(frozen=True)
+class SimDriveBehaviour:
+    """Options that make the simulated drive behave like stricter real devices (defaults: lenient).
+
+    ``strict_setpoint``: controlword bit 4 is read in the drive's cycle (the physics tick), not when
+    the frame arrives; a rising edge is taken only when the set-point acknowledge (statusword bit
+    12) is already low, and the acknowledge drops one cycle after bit 4 went low (CiA 402 profile
+    position handshake as Elmo documents it). ``status_on_change``: False = TPDOs go out on their
+    event timer only, not when the statusword changes (Elmo's default unless 0x2F20 selects events).
+    ``sdo_delay``: seconds before each SDO answer (a busy drive).
+    """
+    strict_setpoint: bool = False
+    status_on_change: bool = True
+    sdo_delay: float = 0.0
 
 
 @dataclass
@@ -108,9 +131,13 @@ class SimCiA402Drive:
     """
 
     def __init__(self, node_id: int, params: DriveParams, *, initial_angle: float = 0.0,
-                 encoder_offset: int = 0) -> None:
+                 encoder_offset: int = 0, behaviour: SimDriveBehaviour = SimDriveBehaviour()) -> None:
         self.node_id = int(node_id)
         self.params = params
+        self.behaviour = behaviour
+        self._cw_seen = 0              # strict handshake: controlword as of the last drive cycle
+        self._ack_drop_due = False
+        self._sdo_mute = False
         self.node = canopen.LocalNode(self.node_id, o.build_object_dictionary(self.node_id))
         self.network: canopen.Network | None = None
         self._lock = threading.RLock()
@@ -152,7 +179,7 @@ class SimCiA402Drive:
         self._now = time.monotonic()
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
-        self.stats = {"rpdo": 0, "tpdo": 0, "sync": 0, "emcy": 0, "setpoints": 0}
+        self.stats = {"rpdo": 0, "tpdo": 0, "sync": 0, "emcy": 0, "setpoints": 0, "ignored_edges": 0}
 
     # ---------------------------------------------------------------- wiring and NMT
 
@@ -160,6 +187,8 @@ class SimCiA402Drive:
         """Put the node on ``network`` and run the boot-up sequence (boot-up message, pre-operational)."""
         self.network = network
         network[self.node_id] = self.node
+        network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
+        network.subscribe(self.node.sdo.rx_cobid, self._on_sdo_request)
         network.subscribe(0, self._on_nmt)
         network.subscribe(0x80, self._on_sync)
         self.boot()
@@ -187,6 +216,16 @@ class SimCiA402Drive:
         nmt.send_command(0x80)            # -> PRE-OPERATIONAL: starts the heartbeat producer (0x1017)
         if self._heartbeat_stopped:
             nmt.stop_heartbeat()
+
+    def _on_sdo_request(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self._silent or self._sdo_mute:
+            return
+        if self.behaviour.sdo_delay > 0:
+            t = threading.Timer(self.behaviour.sdo_delay, self.node.sdo.on_request, (can_id, data, timestamp))
+            t.daemon = True
+            t.start()
+        else:
+            self.node.sdo.on_request(can_id, data, timestamp)
 
     def _on_nmt(self, can_id: int, data: bytes, timestamp: float) -> None:
         if self._silent or len(data) < 2:
@@ -235,6 +274,10 @@ class SimCiA402Drive:
         self._heartbeat_stopped = True
         self.node.nmt.stop_heartbeat()
 
+    def set_sdo_mute(self, mute: bool = True) -> None:
+        """Stop answering SDO requests (PDOs, heartbeat and EMCY go on), as a drive with a hung SDO server."""
+        self._sdo_mute = mute
+
     def set_silent(self, silent: bool = True) -> None:
         """Cut the node off the bus (no heartbeat, no PDO, no SDO answers), as a broken cable would."""
         self._silent = silent
@@ -242,12 +285,7 @@ class SimCiA402Drive:
             return
         if silent:
             self.node.nmt.stop_heartbeat()
-            try:
-                self.network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
-            except (KeyError, ValueError):
-                pass
         else:
-            self.network.subscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
             if not self._heartbeat_stopped:
                 self.node.nmt.start_heartbeat(self._params_od[(o.PRODUCER_HEARTBEAT, 0)])
 
@@ -272,6 +310,8 @@ class SimCiA402Drive:
                         reached = abs(self._velocity_ticks) < 1.0
                     sw |= (o.SW_TARGET_REACHED if reached else 0) | (o.SW_SETPOINT_ACK if self._ack else 0)
                     sw |= o.SW_INTERNAL_LIMIT if self._limited else 0
+                elif self._mode == o.MODE_CYCLIC_SYNC_POSITION:
+                    sw |= o.SW_FOLLOWING | (o.SW_INTERNAL_LIMIT if self._limited else 0)
                 elif self._mode == o.MODE_HOMING:
                     sw |= {"idle": o.SW_TARGET_REACHED, "interrupted": o.SW_TARGET_REACHED, "running": 0,
                            "attained": o.SW_HOMING_ATTAINED | o.SW_TARGET_REACHED,
@@ -282,9 +322,11 @@ class SimCiA402Drive:
         d = self.node.object_dictionary
         for index in (o.POSITION_WINDOW, o.HOME_OFFSET, o.PROFILE_VELOCITY, o.PROFILE_ACCELERATION,
                       o.PROFILE_DECELERATION, o.QUICK_STOP_DECELERATION, o.HOMING_METHOD, o.HOMING_ACCELERATION,
-                      o.QUICK_STOP_OPTION, o.PRODUCER_HEARTBEAT):
+                      o.QUICK_STOP_OPTION, o.PRODUCER_HEARTBEAT, o.ABORT_CONNECTION_OPTION, o.SHUTDOWN_OPTION,
+                      o.DISABLE_OPERATION_OPTION, o.HALT_OPTION, o.FAULT_REACTION_OPTION, o.EMCY_COB_ID):
             self._params_od[(index, 0)] = d[index].default
-        for index, subs in ((o.SOFTWARE_LIMITS, (1, 2)), (o.HOMING_SPEEDS, (1, 2)), (o.CONSUMER_HEARTBEAT, (1,))):
+        for index, subs in ((o.SOFTWARE_LIMITS, (1, 2)), (o.HOMING_SPEEDS, (1, 2)), (o.CONSUMER_HEARTBEAT, (1,)),
+                            (o.ERROR_BEHAVIOUR, (1,)), (o.INTERPOLATION_PERIOD, (1, 2))):
             for s in subs:
                 self._params_od[(index, s)] = d[index][s].default
 
@@ -353,8 +395,12 @@ class SimCiA402Drive:
                 self._apply_controlword(int(value))
             elif index == o.TARGET_POSITION:
                 self._target_raw = int(value)
+                if self._mode == o.MODE_CYCLIC_SYNC_POSITION and self.state == State.OPERATION_ENABLED:
+                    self._target_active = self._clamp_target(int(value))
+                    self._demand = self._ticks_to_angle(self._target_active)
+                    self.stats["setpoints"] += 1
             elif index == o.MODES_OF_OPERATION:
-                if value not in (o.MODE_PROFILE_POSITION, o.MODE_HOMING):
+                if value not in (o.MODE_PROFILE_POSITION, o.MODE_HOMING, o.MODE_CYCLIC_SYNC_POSITION):
                     raise SdoAbortedError(_ABORT_RANGE)
                 if value != self._mode:
                     self._mode = int(value)
@@ -524,7 +570,7 @@ class SimCiA402Drive:
         if sw == self._last_sw_sent:
             return
         self._last_sw_sent = sw
-        if not self._operational():
+        if not self._operational() or not self.behaviour.status_on_change:
             return
         now = time.monotonic()
         for pdo in self._tpdos:
@@ -605,11 +651,14 @@ class SimCiA402Drive:
                 self._ack = False
                 # a set-point bit already high on enabling is not an edge
                 rising &= ~o.CW_NEW_SETPOINT
+                self._cw_seen = cw
             self.state = new
             log.debug("node %d: %s -> %s (cw 0x%04X)", self.node_id, st.value, new.value, cw)
         if self.state != State.OPERATION_ENABLED:
             return
         if self._mode == o.MODE_PROFILE_POSITION:
+            if self.behaviour.strict_setpoint:
+                return                        # bit 4 is sampled in the drive's cycle (_strict_cycle)
             if rising & o.CW_NEW_SETPOINT:
                 self._new_setpoint(cw)
             if falling & o.CW_NEW_SETPOINT and self._pending_target is None:
@@ -624,6 +673,25 @@ class SimCiA402Drive:
             if falling & o.CW_HOMING_START and self._homing == "running":
                 self._homing = "interrupted"
                 self._demand = self.angle
+
+    def _strict_cycle(self) -> None:
+        """Strict handshake, once per drive cycle: bit 4 is sampled here; an edge counts only when
+        the acknowledge is low; the acknowledge drops the cycle after bit 4 went low."""
+        cw, prev = self._cw, self._cw_seen
+        self._cw_seen = cw
+        if self.state != State.OPERATION_ENABLED or self._mode != o.MODE_PROFILE_POSITION:
+            return
+        if self._ack_drop_due:
+            self._ack_drop_due = False
+            if not cw & o.CW_NEW_SETPOINT and self._pending_target is None:
+                self._ack = False
+        if cw & o.CW_NEW_SETPOINT and not prev & o.CW_NEW_SETPOINT:
+            if self._ack:
+                self.stats["ignored_edges"] += 1      # acknowledge still high: not an edge for this drive
+            else:
+                self._new_setpoint(cw)
+        elif prev & o.CW_NEW_SETPOINT and not cw & o.CW_NEW_SETPOINT:
+            self._ack_drop_due = True
 
     def _clamp_target(self, target: int) -> int:
         p = self.params
@@ -674,7 +742,7 @@ class SimCiA402Drive:
         self._target_raw = self._target_active
 
     def _send_emcy(self, code: int, register: int, data: bytes) -> None:
-        if self.network is None or self._silent:
+        if self.network is None or self._silent or self._params_od[(o.EMCY_COB_ID, 0)] & o.PDO_COB_INVALID:
             return
         try:
             self.node.emcy.send(code, register, data.ljust(5, b"\0"))
@@ -718,6 +786,20 @@ class SimCiA402Drive:
                 if not self._cw & o.CW_NEW_SETPOINT:
                     self._ack = False
 
+    def _host_lost(self) -> tuple[int, int, bytes, bool] | None:
+        """The drive's own reaction to a lost master heartbeat (0x6007); returns a fault to report."""
+        option = self._params_od[(o.ABORT_CONNECTION_OPTION, 0)]
+        if option == 1 and self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self._enter_fault(0x8130)
+            self.state = State.FAULT
+            fault, self._fault_pending = self._fault_pending, None
+            return fault
+        if option == 2:
+            self._apply_controlword(o.CW_DISABLE_VOLTAGE)
+        elif option == 3:
+            self._apply_controlword(o.CW_QUICK_STOP)
+        return None
+
     def service(self, now: float) -> None:
         """Timers: automatic state transitions, EMCY, heartbeat consumer, TPDO event timers."""
         self._now = now
@@ -730,17 +812,26 @@ class SimCiA402Drive:
                 if self._params_od[(o.QUICK_STOP_OPTION, 0)] in (0, 1, 2, 3):
                     self.state = State.SWITCH_ON_DISABLED
                     self._qs_deadline = None
+            if self.behaviour.strict_setpoint:
+                self._strict_cycle()
             hb = self._params_od[(o.CONSUMER_HEARTBEAT, 1)]
             hb_ms = hb & 0xFFFF
-            if (hb_ms and self._master_hb_seen is not None and now - self._master_hb_seen > hb_ms * 1e-3
-                    and self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE)):
+            lost = False
+            if hb_ms and self._master_hb_seen is not None and now - self._master_hb_seen > hb_ms * 1e-3:
                 log.warning("node %d: master heartbeat lost", self.node_id)
                 self._master_hb_seen = None
-                self._enter_fault(0x8130)
-                self.state = State.FAULT
-                fault, self._fault_pending = self._fault_pending, None
+                lost = True
+                fault = self._host_lost()
             if fault is not None:
                 self._send_emcy(fault[0], fault[1], fault[2])
+            elif lost:
+                self._send_emcy(0x8130, 0x11, b"")
+            if lost:
+                behaviour = self._params_od[(o.ERROR_BEHAVIOUR, 1)]
+                if behaviour == 0 and self._operational():
+                    self.node.nmt.state = "PRE-OPERATIONAL"
+                elif behaviour == 2:
+                    self.node.nmt.state = "STOPPED"
             self._after_change()
             if self._operational():
                 for pdo in self._tpdos:
@@ -765,7 +856,8 @@ class SimDriveSet:
     def __init__(self, bus: CanBusConfig | can.BusABC, node_ids: Sequence[int], params: DriveParams, *,
                  tick_s: float = PHYSICS_STEP_S, initial_angles: Sequence[float] | None = None,
                  encoder_offsets: Sequence[int] | None = None,
-                 on_angles: Callable[[np.ndarray, float], None] | None = None) -> None:
+                 on_angles: Callable[[np.ndarray, float], None] | None = None,
+                 behaviour: SimDriveBehaviour = SimDriveBehaviour()) -> None:
         self._bus_arg = bus
         self.params = params
         self.tick_s = float(tick_s)
@@ -773,7 +865,7 @@ class SimDriveSet:
         n = len(node_ids)
         initial_angles = list(initial_angles) if initial_angles is not None else [0.0] * n
         encoder_offsets = list(encoder_offsets) if encoder_offsets is not None else [0] * n
-        self.drives = [SimCiA402Drive(nid, params, initial_angle=a, encoder_offset=e)
+        self.drives = [SimCiA402Drive(nid, params, initial_angle=a, encoder_offset=e, behaviour=behaviour)
                        for nid, a, e in zip(node_ids, initial_angles, encoder_offsets)]
         self.network: canopen.Network | None = None
         self._stop = threading.Event()

@@ -93,6 +93,10 @@ class Drives(abc.ABC):
         """The loop reports whether the target was seen at ``now`` (s, loop clock); a safety
         supervisor uses it to hold the drives while the target is lost. Default: ignored."""
 
+    def report(self) -> dict:
+        """Figures for the run summary (counts, times in ms); empty when the drives keep none."""
+        return {}
+
 
 class FrameLog:
     """Counts of camera frames and of frames that gave a valid observation, from ``since`` on.

@@ -138,7 +138,11 @@ def calibrate_straight(client: NatNetClient, observations: MocapObservations, ma
 class HardwareRig(Rig):
     """Drives on CANopen (behind :class:`SafeDrives`), NatNet and an observation source."""
 
-    def __init__(self, config: HardwareRigConfig, camera: CameraParams) -> None:
+    def __init__(self, config: HardwareRigConfig, camera: CameraParams, *, loop_rate: float | None = None) -> None:
+        """``loop_rate`` (Hz): the control loop's rate; the drives' timing settings are checked against
+        it (``CanopenRigConfig.check_timing``) before anything is opened."""
+        if loop_rate is not None:
+            config.can.check_timing(loop_rate)
         self.config = config
         self.camera = camera
         # Load the JIT-compiled kinematics now, not in the loop's first tick (~0.3 s).
