@@ -279,6 +279,13 @@ def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: R
         summary["vision"] = vision.stats()
     if realtime:
         summary["timing_ms"] = rec.timing_ms()
+        period = 1.0 / cfg.loop.rate
+        # what the loop achieved on the wall clock: its rate, and the ticks that ran a whole period late
+        summary["loop"] = {"rate_hz": rec.n_rows / wall if wall > 0 else math.nan,
+                           "overruns": rec.lateness.count_above(period)}
+    drives = rig.drives.report()
+    if drives:
+        summary["drives"] = drives
     if keep_rows:
         summary["_data"] = data
     if run is not None:

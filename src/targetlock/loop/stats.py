@@ -64,6 +64,12 @@ class RunningStats:
         """[min, max] of the finite values; [] when there were none."""
         return [self.min, self.max] if self.count else []
 
+    def count_above(self, x: float) -> int:
+        """How many values were above ``x`` (to the histogram's resolution)."""
+        if self._bins is None:
+            raise ValueError("count_above() needs a histogram range (hist_hi)")
+        return int(self._bins[int(x / self.resolution) + 1:].sum()) if self.count else 0
+
     def quantile(self, q: float) -> float:
         """The ``q`` quantile (0..1) with linear interpolation between order statistics (as
         ``numpy.percentile``), each order statistic taken at its bin's centre; NaN when empty."""
