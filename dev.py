@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".targetlock-install-stamp"
 LOCK = ROOT / "requirements.lock"
-EXTRAS = ("test", "sweep")
+EXTRAS = ("test", "sweep", "gym")
 
 
 def _python() -> Path:

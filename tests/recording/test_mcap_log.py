@@ -139,3 +139,17 @@ def test_a_killed_writer_keeps_what_it_flushed(tmp_path):
         except Exception:           # the file ends where the process died: no footer
             pass
     assert got == [float(k) for k in range(200)]
+
+
+def test_a_vision_run_records_its_frames_with_annotations(tmp_path):
+    run = tmp_path / "v"
+    assert main(["run", "--vision", "--seconds", "3", "--out", str(run)]) == 0
+    images = _messages(run / "run.mcap", "/camera/image")
+    notes = _messages(run / "run.mcap", "/camera/annotations")
+    summary = json.loads((run / "summary.json").read_text())
+    assert len(images) == len(notes) == summary["vision"]["frames"] > 30
+    import base64
+    import cv2
+    img = cv2.imdecode(np.frombuffer(base64.b64decode(images[-1][1]["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (576, 720, 3) and images[-1][1]["format"] == "jpeg"
+    assert notes[-1][1]["circles"], "the tracked target is drawn on the last frame"

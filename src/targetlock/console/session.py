@@ -197,12 +197,12 @@ class TapTracker(Tracker):
         self.selected_ok = self.inner.select(frame_bgr, point_px, window_px)
         return self.selected_ok
 
-    def update(self, frame_bgr: np.ndarray) -> TrackResult:
+    def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         with self._lock:
             req, self._request = self._request, None
         if req is not None:
             self.select(frame_bgr, req[:2], req[2])
-        result = self.inner.update(frame_bgr)
+        result = self.inner.update(frame_bgr, capture_time)
         self.last = result
         frame = Frame(self._seq + 1, frame_bgr.copy(), result, time.time(), self.window_px)
         with self._lock:

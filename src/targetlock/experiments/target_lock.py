@@ -221,6 +221,12 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
         scene = RunMcap(run.mcap, COLUMNS, tip_length=e.tip_length, n_elements=e.n_elements, camera=rig.camera,
                         target_pose=None if hardware else rig.scene.target_pose)
     rec = RunRecorder(rig, ctrl, after=cfg.loop.metrics_after, writer=writer, keep_rows=keep_rows, scene=scene)
+    if vision is not None and scene is not None:
+        def frame_to_mcap(t: float, image, result) -> None:
+            state = "tracked" if result.valid else ("lost" if result.lost else "missed")
+            scene.frame(t, image, target_px=result.position_px if result.valid else None,
+                        label=f"{state}, confidence {result.confidence:.2f}")
+        vision.on_frame = frame_to_mcap
     bar = None
     if progress:
         from tqdm import tqdm

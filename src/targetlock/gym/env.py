@@ -30,13 +30,18 @@ from gymnasium import spaces
 
 from ..config import from_dict, to_dict
 from ..controllers.base import Controller
+from ..controllers.knowledge import resolve_knowledge
 from ..experiments.target_lock import RunConfig, build_rig
 from ..loop.clock import SimClock
+from ..loop.gate import ObservationGate
 from ..loop.runner import ControlLoop
 from ..model.twin import merge, preset_overrides
 from ..rig.base import Observation
 
 __all__ = ["TargetLockEnv", "random_case", "observation_vector"]
+
+MAX_AGE = 60.0
+"""s: the observation's age is reported up to this (a target unseen for longer is simply old)."""
 
 
 def random_case(rng: np.random.Generator) -> dict:
@@ -77,7 +82,7 @@ def observation_vector(obs: Observation | None, motor: np.ndarray, t: float, las
         out[2] = 1.0 if ok else 0.0
         out[3] = t - obs.capture_time
     else:
-        out[3] += t - out[6] if out[6] >= 0 else 0.0
+        out[3] = min(out[3] + (t - out[6] if out[6] >= 0 else 0.0), MAX_AGE)
     out[4:6] = motor
     out[6] = t
     return out
@@ -117,9 +122,12 @@ class TargetLockEnv(gym.Env):
         self.cfg = self.base
         step = self.base.controller.max_rate / self.base.loop.rate
         self.action_space = spaces.Box(-step, step, shape=(2,), dtype=np.float32)
-        vec = spaces.Box(-np.inf, np.inf, shape=(6,), dtype=np.float32)
+        cam = self.base.twin.camera
+        # offsets within the image (the loop's gate rejects the rest), age capped, handle within the drive range
+        lo, hi = self.base.twin.drive.min_angle, self.base.twin.drive.max_angle   # rad; randomisation keeps them
+        vec = spaces.Box(np.array([-cam.width, -cam.height, 0.0, 0.0, lo, lo], np.float32),
+                         np.array([cam.width, cam.height, 1.0, MAX_AGE, hi, hi], np.float32), dtype=np.float32)
         if observation == "image":
-            cam = self.base.twin.camera
             self.observation_space = spaces.Dict({
                 "state": vec, "image": spaces.Box(0, 255, shape=(cam.height, cam.width, 3), dtype=np.uint8)})
         else:
@@ -148,40 +156,50 @@ class TargetLockEnv(gym.Env):
         hook = None
         if self.cfg.vision:
             from ..vision.pipeline import VisionPipeline
-            hook = self._vision = VisionPipeline(self.cfg.twin, tracker=self.cfg.vision_tracker, seed=self.cfg.seed,
-                                                 on_frame=self._keep_frame)
+            hook = VisionPipeline(self.cfg.twin, tracker=self.cfg.vision_tracker, seed=self.cfg.seed,
+                                  on_frame=self._keep_frame)
         self.rig = build_rig(self.cfg, hook)
         lo, hi = self.rig.drives.limits
         rpt = self.rig.drives.rad_per_tick
+        # the agent knows only the controller's nominal knowledge, as every controller (never the truth)
         self.agent = _Agent(self.cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt,
-                            control_dt=1.0 / self.cfg.loop.rate)
-        self._loop = ControlLoop(self.rig, self.agent, rate=self.cfg.loop.rate, clock=SimClock())
+                            control_dt=1.0 / self.cfg.loop.rate,
+                            knowledge=resolve_knowledge(self.cfg.knowledge, self.cfg.twin))
+        self._loop = ControlLoop(self.rig, self.agent, rate=self.cfg.loop.rate, clock=SimClock(),
+                                 gate=ObservationGate.for_camera(self.cfg.loop.gate, self.rig.camera))
         self._loop.begin()
         self._k = 0
         self._n = int(round(self.cfg.loop.seconds * self.cfg.loop.rate))
         self._vec = np.zeros(7)
         self._vec[6] = -1.0
-        self._vec[4:6] = self.rig.drives.positions() * rpt
-        return self._observation(), self._info(None)
+        tick = self._loop.observe()          # the first tick's observation; the action acts on it
+        return self._observe(tick)[0], self._info(tick, self._truth)
 
     def step(self, action):
         if self._loop is None:
-            raise RuntimeError("step() before reset()")
+            raise RuntimeError("step() before reset(), or after the episode was truncated")
         a = np.clip(np.asarray(action, dtype=float).reshape(2), self.action_space.low, self.action_space.high)
         self.agent.action = np.where(np.isfinite(a), a, 0.0)     # a NaN action holds the handle
+        self._loop.act()                     # this tick's set-point: the loop's limits apply
         self._k += 1
-        tick = self._loop.tick(self._k)
-        self._vec = observation_vector(tick.observation, tick.motor, tick.time, self._vec)
-        truth = self.rig.truth_offset(tick.time)
-        if self.reward_kind == "truth":
-            err = math.hypot(truth[0], truth[1])
-        else:
-            err = math.hypot(self._vec[0], self._vec[1]) if self._vec[2] else math.nan
-        reward = -self.penalty if not math.isfinite(err) else -err / self.reward_scale
         truncated = self._k >= self._n
+        tick = self._loop.observe()          # the next tick: what the action led to
+        obs, err = self._observe(tick)
+        reward = -self.penalty if not math.isfinite(err) else -err / self.reward_scale
+        info = self._info(tick, self._truth)
         if truncated:
             self._close_loop()
-        return self._observation(), float(reward), False, truncated, self._info(tick, truth)
+        return obs, float(reward), False, truncated, info
+
+    def _observe(self, tick) -> tuple[Any, float]:
+        """The observation of a tick and the error the reward is computed from (px; NaN out of view)."""
+        self._vec = observation_vector(tick.observation, tick.motor, tick.time, self._vec)
+        self._truth = self.rig.truth_offset(tick.time)
+        if self.reward_kind == "truth":
+            err = math.hypot(self._truth[0], self._truth[1])
+        else:
+            err = math.hypot(self._vec[0], self._vec[1]) if self._vec[2] else math.nan
+        return self._observation(), err
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -192,14 +210,14 @@ class TargetLockEnv(gym.Env):
         self._close_loop()
 
     # ------------------------------------------------------------------------------------------ helpers
-    def _keep_frame(self, image: np.ndarray) -> None:
+    def _keep_frame(self, t: float, image: np.ndarray, result) -> None:
         self._frame = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
 
     def _observation(self):
         state = self._vec[:6].astype(np.float32)
         if self.observation_kind == "image":
             cam = self.cfg.twin.camera
-            img = self._frame if self._frame is not None else np.zeros((cam.height, cam.width, 3), np.uint8)
+            img = self._frame.copy() if self._frame is not None else np.zeros((cam.height, cam.width, 3), np.uint8)
             return {"state": state, "image": img}
         return state
 
@@ -209,11 +227,9 @@ class TargetLockEnv(gym.Env):
                                 "path": self.cfg.twin.scene.path}
         if tick is not None:
             info["true_offset"] = truth
-            info["setpoint"] = tick.setpoint.copy()
+            info["motor"] = tick.motor.copy()
             info["observation"] = tick.observation
         return info
 
     def _close_loop(self) -> None:
-        if self._loop is not None:
-            self._loop.end()
-            self._loop = None
+        self._loop = None          # the twin holds nothing open; a new episode builds a new rig

@@ -91,49 +91,90 @@ class ControlLoop:
                     return now, 0.0, True
                 return deadline, now - deadline, False   # woken too late (a loaded host): a late tick
 
-    def run(self, seconds: float, on_tick: Callable[[Tick], None] | None = None) -> int:
-        """Run for ``seconds`` (s); returns the number of ticks executed."""
-        rig, ctrl, drives, gate = self.rig, self.controller, self.rig.drives, self.gate
-        rpt = drives.rad_per_tick
+    def begin(self) -> None:
+        """Home the drives if needed (no motion before homing), start the clock at t = 0 and engage
+        the controller at the measured motor position. Then call :meth:`tick` once per period."""
+        rig, drives = self.rig, self.rig.drives
         if not drives.homed:
             drives.home()
         self.clock.start()
         rig.start_clock()                 # hardware rigs align their clock with the loop's
-        gate.reset()
-        early_ticks = self.step_on_arrival and self.clock.realtime and rig.observations.signals_arrivals
-        last_seen = 0.0
-        ctrl.reset(drives.positions() * rpt, 0.0)
-        n = int(round(seconds / self.period))
-        tick = Tick()
-        done = 0
+        self.gate.reset()
+        self._early = self.step_on_arrival and self.clock.realtime and rig.observations.signals_arrivals
+        self._last_seen = 0.0
+        self._k = 0
+        self._tick = Tick()
+        self._limits = drives.limits
+        positions = drives.positions()
+        self._held = np.asarray(positions, dtype=float)
+        self.controller.reset(positions * drives.rad_per_tick, 0.0)
+
+    def tick(self) -> Tick:
+        """Run the next tick: :meth:`observe`, then :meth:`act` with the controller's set-point.
+        Returns the (reused) :class:`Tick`. On any exception the drives are disabled first."""
+        with deferred():          # a stop signal waits for the end of the whole tick
+            self.observe()
+            return self.act()
+
+    def observe(self) -> Tick:
+        """First half of a tick: wait for its deadline (or earlier, see the module doc), advance the rig,
+        gate the newest observation and read the motors. Fills ``index``, ``time``, ``lateness``,
+        ``early``, ``observation`` and ``motor`` of the returned :class:`Tick`."""
+        rig, drives, tick = self.rig, self.rig.drives, self._tick
         try:
-            for k in range(1, n + 1):
-                deadline = k * self.period
-                if early_ticks:
-                    t, tick.lateness, tick.early = self._wait(deadline)
-                else:
-                    t, tick.lateness = deadline, self.clock.sleep_until(deadline)
-                with deferred():          # a stop signal waits for the end of the tick
-                    rig.advance(t)
-                    # The gate judges capture times against the clock's now: a late tick runs after t.
-                    arrived = gate.admit(rig.observations.poll(t), self.clock.now())
-                    obs = arrived[-1] if arrived else None
-                    if obs is not None:
-                        last_seen = t
-                        drives.note_observation(obs.valid, t)
-                    elif t - last_seen > self.silence:
-                        drives.note_observation(False, t)  # no plausible frames at all counts as lost
-                    motor = drives.positions() * rpt
-                    setpoint = ctrl.step(obs, motor, t)
-                    ticks = np.rint(setpoint / rpt).astype(np.int64)
-                    drives.send_setpoints(ticks)
-                    tick.sent = self.clock.now()
-                    done = k
-                    if on_tick is not None:
-                        tick.index, tick.time, tick.observation = k, t, obs
-                        tick.motor, tick.setpoint, tick.ticks = motor, setpoint, ticks
-                        on_tick(tick)
+            k = self._k + 1
+            deadline = k * self.period
+            if self._early:
+                t, tick.lateness, tick.early = self._wait(deadline)
+            else:
+                t, tick.lateness = deadline, self.clock.sleep_until(deadline)
+            with deferred():          # a stop signal waits for the end of the tick
+                rig.advance(t)
+                # The gate judges capture times against the clock's now: a late tick runs after t.
+                arrived = self.gate.admit(rig.observations.poll(t), self.clock.now())
+                obs = arrived[-1] if arrived else None
+                if obs is not None:
+                    self._last_seen = t
+                    drives.note_observation(obs.valid, t)
+                elif t - self._last_seen > self.silence:
+                    drives.note_observation(False, t)  # no plausible frames at all counts as lost
+                tick.motor = drives.positions() * drives.rad_per_tick
+                tick.index, tick.time, tick.observation = k, t, obs
+                self._k = k
+            return tick
         except BaseException:
             drives.disable()
             raise
-        return done
+
+    def act(self) -> Tick:
+        """Second half of a tick: the controller's set-point from this tick's observation and motors,
+        clipped to the drives' limits before the integer cast, sent. Fills ``setpoint``, ``ticks``, ``sent``."""
+        drives, tick = self.rig.drives, self._tick
+        try:
+            with deferred():
+                setpoint = self.controller.step(tick.observation, tick.motor, tick.time)
+                raw = setpoint / drives.rad_per_tick
+                if np.all(np.isfinite(raw)):
+                    # clipped before the integer cast: a huge finite value must not wrap to the other limit
+                    self._held = np.clip(raw, *self._limits)
+                ticks = np.rint(self._held).astype(np.int64)
+                drives.send_setpoints(ticks)
+                tick.sent = self.clock.now()
+                tick.setpoint, tick.ticks = setpoint, ticks
+            return tick
+        except BaseException:
+            drives.disable()
+            raise
+
+    def run(self, seconds: float, on_tick: Callable[[Tick], None] | None = None) -> int:
+        """Run for ``seconds`` (s); returns the number of ticks executed."""
+        self.begin()
+        try:
+            for _ in range(int(round(seconds / self.period))):
+                tick = self.tick()
+                if on_tick is not None:
+                    on_tick(tick)
+        except BaseException:
+            self.rig.drives.disable()
+            raise
+        return self._k

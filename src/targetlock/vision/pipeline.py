@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -19,7 +20,7 @@ from ..model.twin import TwinConfig
 from ..rig.base import Observation
 from .overlay import draw_overlay
 from .render import PlanarTarget, RenderSettings, Renderer, interpolate_pose
-from .tracker import make_tracker, to_observation
+from .tracker import TrackResult, make_tracker, to_observation
 
 __all__ = ["VisionPipeline"]
 
@@ -29,7 +30,8 @@ class VisionPipeline:
 
     def __init__(self, twin: TwinConfig, *, tracker: str = "feature", window_px: int = 96, seed: int = 0,
                  settings: RenderSettings | None = None, exposure_fraction: float = 0.5,
-                 video: str | Path | None = None) -> None:
+                 video: str | Path | None = None,
+                 on_frame: Callable[[float, np.ndarray, TrackResult], None] | None = None) -> None:
         self.cam = twin.camera
         # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
         size = (0.4, 0.4)
@@ -46,6 +48,8 @@ class VisionPipeline:
         self.frames = 0
         self.errors: list[float] = []
         self._writer = None
+        self.on_frame = on_frame        # (capture time s, BGR image, tracker result) of every frame
+        self.last_image: np.ndarray | None = None
         if video is not None:
             fourcc = cv2.VideoWriter_fourcc(*"mp4v")
             self._writer = cv2.VideoWriter(str(video), fourcc, self.cam.fps, (self.cam.width, self.cam.height))
@@ -76,6 +80,9 @@ class VisionPipeline:
         obs = to_observation(result, t, self.cam.cx, self.cam.cy, frame_index=rig.frame_index, truth_px=frame.truth_px)
         if obs.valid and frame.visible:
             self.errors.append(float(np.hypot(*(obs.offset - obs.truth))))
+        self.last_image = frame.image
+        if self.on_frame is not None:
+            self.on_frame(t, frame.image, result)
         if self._writer is not None:
             err = np.hypot(*frame.truth_offset(self.cam))
             self._writer.write(draw_overlay(frame.image, result, centre_px=(self.cam.cx, self.cam.cy),
