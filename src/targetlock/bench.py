@@ -140,7 +140,7 @@ def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: floa
     class LiveRig(Rig):
         def __init__(self, sim) -> None:
             self.sim, self.drives, self.camera = sim, sim.drives, sim.camera
-            self.observations = PacedSource()
+            self.observations: PacedSource = PacedSource()
 
         def start_clock(self) -> None:
             self.observations.start()
@@ -155,9 +155,11 @@ def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: floa
         with LiveRig(build_rig(cfg)) as rig:
             ms: list[float] = []
             loop = ControlLoop(rig, build_controller(cfg, rig), rate=rate, clock=WallClock(), step_on_arrival=early)
+            def note(tk) -> None:
+                if tk.observation is not None:
+                    ms.append(1e3 * (tk.sent - tk.observation.arrival_time))
             try:
-                loop.run(seconds, lambda tk: tk.observation is not None and
-                         ms.append(1e3 * (tk.sent - tk.observation.arrival_time)))
+                loop.run(seconds, note)
             finally:
                 rig.observations.close()
         out[f"frame_to_setpoint_p50_ms{label}"] = float(np.percentile(ms, 50))

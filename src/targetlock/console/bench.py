@@ -45,6 +45,7 @@ def _thread_cpu() -> dict[int, float]:
 
 
 def _window(session: ConsoleSession, server: ConsoleServer, seconds: float) -> dict:
+    assert session._thread is not None and server._thread is not None
     loop_tid, http_tid = session._thread.native_id or 0, server._thread.native_id or 0
     threads0, cpu0, wall0 = _thread_cpu(), time.process_time(), time.perf_counter()
     time.sleep(seconds)
@@ -133,6 +134,7 @@ def bench_console(seconds: float = 5.0, pages: int = 3, chromium: str = "/usr/bi
         viewers.wait(timeout=60)
         pages_proc = _spawn(f"from targetlock.console.bench import _browser_pages; _browser_pages({server.url()!r}, "
                             f"{pages}, {seconds + 1.0}, {chromium!r}, {screenshot!r})")
+        assert pages_proc.stdout is not None
         if pages_proc.stdout.readline().strip() != "ready":
             raise RuntimeError("the browser pages did not start")
         enc0, n0 = server.hub.encode_seconds, server.hub.encoded_frames

@@ -303,7 +303,7 @@ def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub
             while True:
                 m = await states.newer_than(seq)
                 seq = m.seq
-                await ws.send_text(m.payload)
+                await ws.send_text(str(m.payload))
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
@@ -318,7 +318,8 @@ def make_app(session: ConsoleSession, *, token: str | None = None, hub: FrameHub
             while True:
                 enc = await h.newer_than(seq)
                 seq = enc.seq
-                await ws.send_bytes(enc.payload)
+                payload = enc.payload
+                await ws.send_bytes(payload.encode() if isinstance(payload, str) else payload)
                 await ws.receive_text()       # the page drew it: only then the next (newest) one
         except (WebSocketDisconnect, RuntimeError):
             pass

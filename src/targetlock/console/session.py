@@ -402,6 +402,7 @@ class ConsoleSession:
         ox, oy = (o.offset[0], o.offset[1]) if o is not None else (math.nan, math.nan)
         truth = self.rig.truth_offset(tick.time)
         tip = self.rig.tip_angles()
+        assert tick.motor is not None
         row = (tick.time, ox, oy, math.hypot(ox, oy), math.hypot(truth[0], truth[1]),
                math.degrees(tick.motor[0]), math.degrees(tick.motor[1]), math.degrees(tip[0]), math.degrees(tip[1]))
         sig = self.switch.signals()
@@ -578,7 +579,7 @@ class ConsoleSession:
                      "tick_ms_p50": float(np.percentile(busy, 50)) if busy.size else None},
             "tracker": None if tr is None else {"valid": bool(tr.valid), "lost": bool(tr.lost),
                                                 "confidence": float(tr.confidence),
-                                                "selected": self.tap.selected_ok},
+                                                "selected": None if self.tap is None else self.tap.selected_ok},
             "controller": to_dict(self.switch.cfg),
             "controllers": list(CONTROLLERS),
             "target_path": self.rig.scene.path if self.twin else None,

@@ -152,6 +152,7 @@ class ControlLoop:
         drives, tick = self.rig.drives, self._tick
         try:
             with deferred():
+                assert tick.motor is not None, "act() before observe()"
                 setpoint = self.controller.step(tick.observation, tick.motor, tick.time)
                 raw = setpoint / drives.rad_per_tick
                 if np.all(np.isfinite(raw)):
