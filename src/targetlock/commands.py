@@ -289,7 +289,7 @@ class SimRigOptions:
 # What ``sim-rig`` serves without --rig (as examples/twin_rig.toml): drives on the udp_loopback bus,
 # NatNet unicast on 127.0.0.1; everything stays on this machine.
 LOOPBACK_RIG = {
-    "can": {"node_ids": [1, 2], "homing_method": 37,
+    "can": {"node_ids": [1, 2], "homing_method": 37, "status_timeout": 0.5, "heartbeat_timeout": 0.5,
             "bus": {"interface": "udp_loopback", "channel": "239.255.0.1", "port": 43113}},
     "natnet": {"server_ip": "127.0.0.1", "local_ip": "127.0.0.1", "multicast": False},
 }
