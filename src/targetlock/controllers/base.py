@@ -62,7 +62,7 @@ class ControllerConfig:
                                      doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
     adaptive_max_gain: float = param(1.5, lo=1.0, hi=10.0,
                                      doc="adaptive: largest integral gain it schedules, × PI's (far distances)")
-    adaptive_cautious_depth: float = param(0.02, unit="m", lo=0.005, hi=2.0,
+    adaptive_cautious_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
                                            doc="adaptive: distance assumed for motion not yet seen in the image until its estimate is trusted")
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
