@@ -14,14 +14,20 @@ gain is 3–5× too high (it oscillates and loses the target) and at 15 cm sligh
 * a supervisor compares the image motion the model predicted between frames with what the camera
   then showed; the schedule is blended in by that trust, and at low trust (just engaged, the shaft
   moved, the tracker jumped, the estimate still converging) the gain falls back to plain PI's;
-* optionally (``adaptive_prediction``) the offset is predicted to now with the estimated model, a
-  Smith predictor in image space (x + J·(m_now − m_capture)), weighted by the trust too.
+* the motion not yet seen in the image (the last video latency of motor motion) is predicted into
+  the offset, a Smith predictor in image space (x + w·J·(m_now − m_capture)): just after engaging
+  with a cautious Jacobian (``adaptive_cautious_depth``, fading with ``adaptive_caution_time`` and
+  with trust), so the blind first move cannot overshoot by a near distance's 3–5×; and with the
+  estimate, weighted by how much larger than nominal it is (0 at the nominal distance, where PI's
+  tuning already accounts for the latency — a predictor without the target's motion would only add
+  tracking lag there; 1 from twice the nominal Jacobian). ``adaptive_prediction`` adds trust-weighted
+  prediction everywhere (off by default: it costs tracking lag on drifting targets).
 
 The delay between the stamped capture time and the image motion (a wrongly stamped or unknown
 latency) and the backlash width at reversals are estimated as well: the delay lines up the motor
 increments the Jacobian is fitted to with the image increments; the backlash shapes them (a play
 operator: motor motion inside the backlash does not move the tip). No hysteresis compensation is
-applied: PI's direction of motion is kept exactly, so a wrong estimate can only change the gain.
+applied: PI's direction of motion is kept, so a wrong estimate changes only the gain and the prediction.
 """
 from __future__ import annotations
 
