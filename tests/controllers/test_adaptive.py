@@ -47,6 +47,15 @@ def test_supervisor_falls_back_while_the_image_contradicts_the_model():
     c = make()
     drive(c, lambda m, t: rng.normal(0.0, 80.0, 2))     # the image moves, but not with the motors
     assert c.trust == 0.0
+    assert c.gain_factor == 1.0                          # the fallback is PI's own gain, not a more cautious one
+
+
+def test_a_trusted_large_jacobian_lowers_the_gain_and_a_small_one_raises_it_at_most_to_the_clamp():
+    near, far = make(), make()
+    drive(near, lambda m, t: np.array([[-1500.0, 0.0], [0.0, -1450.0]]) @ m, width=0.0)   # ≈ 1.5 cm
+    drive(far, lambda m, t: np.array([[-150.0, 0.0], [0.0, -140.0]]) @ m)      # farther than the lock is made for
+    assert near.trust > 0.8 and near.gain_factor < 0.4
+    assert far.trust > 0.8 and 1.0 < far.gain_factor <= far.cfg.adaptive_max_gain
 
 
 def step_config(distance, kind, knowledge=None, seconds=10.0):
@@ -63,6 +72,13 @@ def test_at_one_and_a_half_centimetres_it_keeps_the_target_that_pi_loses():
     assert ad["out_of_view_fraction"] == 0.0
     last = ad["_data"][-100:, 3]                      # the last 2 s: settled near the centre, at rest
     assert np.nanmax(last) < 40.0
+
+
+def test_far_away_it_is_not_slower_than_pi():
+    pi = run_target_lock(step_config(0.15, "pi", seconds=6.0))
+    ad = run_target_lock(step_config(0.15, "adaptive", seconds=6.0))
+    assert ad["out_of_view_fraction"] == 0.0
+    assert ad["rms_px"] <= 1.1 * pi["rms_px"]
 
 
 @pytest.mark.parametrize("knowledge", [

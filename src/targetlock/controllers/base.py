@@ -60,15 +60,16 @@ class ControllerConfig:
                                doc="delay of the motor position to match the video (-1: the camera latency)")
     target_prediction: float = param(1.0, lo=0.0, hi=2.0,
                                      doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
-    adaptive_gain: float = param(3.0, unit="1/s", lo=0.05, hi=50.0,
-                                 doc="adaptive: closed-loop bandwidth while its model predicts the image well")
-    adaptive_safe_gain: float = param(0.5, lo=0.01, hi=1.5,
-                                      doc="adaptive: fallback loop gain × (video age + frame interval): PI tuned to the delay")
-    adaptive_prior_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
-                                        doc="adaptive: distance of its prior Jacobian (short = cautious until estimated)")
-    adaptive_backlash: float = param(0.0, lo=0.0, hi=2.0, doc="adaptive: fraction of the estimated backlash compensated")
+    adaptive_max_gain: float = param(1.5, lo=1.0, hi=10.0,
+                                     doc="adaptive: largest integral gain it schedules, × PI's (far distances)")
+    adaptive_cautious_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
+                                           doc="adaptive: distance assumed for motion not yet seen in the image until its estimate is trusted")
+    adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
+                                         doc="adaptive: time constant with which that caution fades after engaging")
+    adaptive_prediction: float = param(0.0, lo=0.0, hi=1.0,
+                                       doc="adaptive: weight of its latency prediction with the estimated Jacobian")
     adaptive_max_backlash: float = param(0.1, unit="rad", lo=0.0, hi=1.0,
-                                         doc="adaptive: largest backlash width (handle) it models and compensates")
+                                         doc="adaptive: largest backlash width (handle) its play operator models")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")

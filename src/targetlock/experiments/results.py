@@ -190,9 +190,10 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   depth, focal length), never the simulated plant's truth; `knowledge.source = "oracle"` hands the truth
   over and every result says which it was. In the report's scenarios the nominal values are the plant's.
 * **`adaptive`** (ours) assumes almost nothing: it estimates the image Jacobian (distance, focal length,
-  handle gain), the delay and the backlash while it runs, schedules its gain by the Jacobian, predicts
-  over the latency while a supervisor finds the model consistent and falls back to a delay-tuned PI
-  gain otherwise. It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, but
-  it starts cautiously (its prior is a short distance), so on the report's fast 12 cm paths it is
-  slower than PI.
+  handle gain), the delay and the backlash while it runs. It is PI (I = 300) until it has measured
+  otherwise: the integral gain is scheduled as 300 · J_nominal / J_estimate while a supervisor finds the
+  model consistent (at most 1.5 × 300), and falls back to PI's own gain otherwise; it predicts the motion
+  not yet seen in the image where the estimate says the target is nearer than nominal, and cautiously
+  just after engaging. It keeps the target in view at 1–2 cm where every fixed-gain controller loses it,
+  and on the report's 12 cm paths it stays at PI's errors.
 """
