@@ -17,16 +17,6 @@ def virtual_bus() -> CanBusConfig:
     return CanBusConfig(interface="virtual", channel=f"tl-test-{uuid.uuid4().hex[:12]}")
 
 
-def wait_for(pred, timeout: float) -> bool:
-    """Poll ``pred`` every 5 ms until it holds or ``timeout`` s pass; its final value."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
-
-
 def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

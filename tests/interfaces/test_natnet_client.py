@@ -14,7 +14,7 @@ from targetlock.interfaces.natnet import LatestSample, NatNetClient, NatNetConfi
 from targetlock.interfaces.sim_natnet import SimNatNetConfig, SimNatNetServer
 from targetlock.model.kinematics import tip_pose
 
-from iface_helpers import free_udp_port, wait_for
+from iface_helpers import free_udp_port, wait_until
 
 PHI = (0.31, -0.22)
 
@@ -49,7 +49,7 @@ def test_poses_arrive_within_float32_precision(multicast, version):
     with srv, NatNetClient(cfg) as client:
         assert client.version == tuple(int(x) for x in version.split("."))
         assert client.clock_hz == 10_000_000
-        assert wait_for(lambda: client.stats.frames >= 5, 2.0)
+        assert wait_until(lambda: client.stats.frames >= 5, 2.0)
         sample = client.get()
         assert sample is not None
         b, t = poses()
@@ -85,7 +85,7 @@ def test_latest_sample_slot_keeps_only_the_newest():
 def test_newest_only_handoff_to_a_slow_consumer():
     srv, cfg = pair(rate_hz=500)
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 0, 2.0)
+        assert wait_until(lambda: client.stats.frames > 0, 2.0)
         seen = []
         for _ in range(8):
             time.sleep(0.04)                       # a loop much slower than the stream
@@ -129,7 +129,7 @@ def test_jitter_keeps_frames_flowing_and_accounted():
 def test_garbage_on_the_wire_is_counted_and_skipped():
     srv, cfg = pair(rate_hz=200)
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 2, 2.0)
+        assert wait_until(lambda: client.stats.frames > 2, 2.0)
         tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
         tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
@@ -139,14 +139,14 @@ def test_garbage_on_the_wire_is_counted_and_skipped():
             tx.sendto(junk, (cfg.multicast_group, cfg.data_port))
         tx.close()
         frames = client.stats.frames
-        assert wait_for(lambda: client.stats.malformed == 50, 2.0)
-        assert wait_for(lambda: client.stats.frames > frames + 5, 2.0)   # the stream goes on
+        assert wait_until(lambda: client.stats.malformed == 50, 2.0)
+        assert wait_until(lambda: client.stats.frames > frames + 5, 2.0)   # the stream goes on
 
 
 def test_untracked_bodies_give_no_angles():
     srv, cfg = pair(rate_hz=200, source=lambda: None)
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.get() is not None, 2.0)
+        assert wait_until(lambda: client.get() is not None, 2.0)
         assert not client.get().rigid_body(1).tracking_valid
         assert MocapBendingSensor(client, 1, 2).read() is None
 
@@ -154,7 +154,7 @@ def test_untracked_bodies_give_no_angles():
 def test_stale_sample_is_not_returned():
     srv, cfg = pair(rate_hz=200)
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.get() is not None, 2.0)
+        assert wait_until(lambda: client.get() is not None, 2.0)
         srv.stop()                                 # Motive stops streaming
         time.sleep(cfg.max_sample_age + 0.02)
         assert client.get() is None

@@ -18,7 +18,7 @@ from targetlock.interfaces.natnet import (NAT_CONNECT, NAT_DISCOVERY, NAT_ECHORE
                                           parse_packet, parse_server_info)
 from targetlock.interfaces.sim_natnet import CLOCK_HZ, SimNatNetConfig, SimNatNetServer
 
-from iface_helpers import free_udp_port, wait_for
+from iface_helpers import free_udp_port, wait_until
 
 TARGET = np.eye(4)
 TARGET[:3, 3] = (0.1, 0.0, 1.5)
@@ -71,7 +71,7 @@ def test_configured_version_is_requested_and_streamed(honours):
     with srv, NatNetClient(cfg) as client:
         assert srv.version == (3, 1) and client.version == (3, 1)
         assert ("Bitstream,3.1" in srv.stats.requests) == (honours == "bitstream")
-        assert wait_for(lambda: client.stats.frames > 5, 3.0)
+        assert wait_until(lambda: client.stats.frames > 5, 3.0)
         assert client.stats.malformed == 0
         assert client.get().frame.version == (3, 1)
         assert client.get().rigid_body(3).position == pytest.approx((0.1, 0.0, 1.5))
@@ -89,13 +89,13 @@ def test_stream_switched_under_the_client_is_reported_not_taken_as_data():
     counted as malformed with a reason, and no new sample reaches the loop."""
     srv, cfg = pair({"version": "3.1"}, version="3.1")
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 3, 3.0)
+        assert wait_until(lambda: client.stats.frames > 3, 3.0)
         other = RawClient(srv)
         assert other.ask(encode_packet(NAT_REQUEST, b"Bitstream,4.1\0"), NAT_RESPONSE)[1].tobytes() == b"\0\0\0\0"
         other.close()
         time.sleep(0.05)
         frames, malformed = client.stats.frames, client.stats.malformed
-        assert wait_for(lambda: client.stats.malformed > malformed + 10, 3.0)
+        assert wait_until(lambda: client.stats.malformed > malformed + 10, 3.0)
         assert client.stats.frames <= frames + 1
         assert client.stats.last_error                  # the reason is kept for the report
 
@@ -130,9 +130,9 @@ def test_target_body_disappearing_mid_run_is_reported():
 
     srv, cfg = pair(source=source)
     with srv, NatNetClient(cfg, extra_bodies={"target": ("", 3)}) as client:
-        assert wait_for(lambda: client.stats.frames > 3, 3.0)
+        assert wait_until(lambda: client.stats.frames > 3, 3.0)
         state["target"] = False
-        assert wait_for(lambda: client.stats.implausible > 5, 3.0)
+        assert wait_until(lambda: client.stats.implausible > 5, 3.0)
         assert "absent" in client.stats.last_error
 
 
@@ -145,7 +145,7 @@ def test_bodies_by_motive_asset_name():
         assert srv.stats.model_requests == 1
         assert client.body_ids == {"base": 1, "tip": 2, "target": 3}
         assert [(d.name, d.id) for d in client.model] == [("EndoscopeBase", 1), ("EndoscopeTip", 2), ("Target", 3)]
-        assert wait_for(lambda: client.stats.frames > 3, 3.0)
+        assert wait_until(lambda: client.stats.frames > 3, 3.0)
 
 
 @pytest.mark.parametrize("client_kw, extra, missing", [
@@ -169,7 +169,7 @@ def test_server_without_model_definitions():
     with srv, NatNetClient(cfg) as client:
         assert client.model is None and client.body_ids == {"base": 1, "tip": 2}
         assert client.clock_sync is not None and not client.clock_sync.ready      # no echo either
-        assert wait_for(lambda: client.stats.frames > 3, 3.0)
+        assert wait_until(lambda: client.stats.frames > 3, 3.0)
         s = client.get()
         assert s.mapped_capture_time is None and s.capture_time == s.received_at - s.latency
     srv, cfg = pair({"base_body_name": "EndoscopeBase", "tip_body_name": "EndoscopeTip"}, motive_replies=False)
@@ -234,7 +234,7 @@ def test_frame_timestamps_behave_like_motives():
     srv, cfg = pair(rate_hz=100.0, latency=0.004)
     frames = []
     with srv, NatNetClient(cfg, on_sample=frames.append) as client:
-        assert wait_for(lambda: len(frames) > 20, 3.0)
+        assert wait_until(lambda: len(frames) > 20, 3.0)
     f = [s.frame for s in frames]
     for fr in f:
         assert fr.timestamp == pytest.approx(fr.frame_number / 100.0)           # frame number / frame rate
@@ -271,7 +271,7 @@ def test_capture_time_is_mapped_mid_exposure_including_network_transit():
     with srv, NatNetClient(cfg, on_sample=samples.append) as client:
         assert client.clock_sync.count >= 4
         del samples[:]                  # frames during start-up came before the sync
-        assert wait_for(lambda: len(samples) > 30, 3.0)
+        assert wait_until(lambda: len(samples) > 30, 3.0)
         rtt, _ = client.clock_sync.best()
     assert rtt >= 0.02
     truth = np.array([srv.ticks_to_local(s.frame.camera_mid_exposure) for s in samples])
@@ -289,7 +289,7 @@ def test_capture_time_is_mapped_mid_exposure_including_network_transit():
 def test_packets_from_another_sender_are_ignored(multicast):
     srv, cfg = pair(multicast=multicast)
     with srv, NatNetClient(cfg) as client:
-        assert wait_for(lambda: client.stats.frames > 3, 3.0)
+        assert wait_until(lambda: client.stats.frames > 3, 3.0)
         intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         intruder.bind(("127.0.0.2", 0))              # another host's address on the loopback net
         intruder.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
@@ -301,8 +301,8 @@ def test_packets_from_another_sender_are_ignored(multicast):
         for _ in range(20):
             intruder.sendto(fake, dest)
         intruder.close()
-        assert wait_for(lambda: client.stats.foreign >= 20, 2.0)
+        assert wait_until(lambda: client.stats.foreign >= 20, 2.0)
         frames = client.stats.frames
-        assert wait_for(lambda: client.stats.frames > frames + 3, 2.0)          # the real stream goes on
+        assert wait_until(lambda: client.stats.frames > frames + 3, 2.0)          # the real stream goes on
         assert client.get().rigid_body(1).position != (9.0, 9.0, 9.0)
         assert client.stats.discontinuities == 0

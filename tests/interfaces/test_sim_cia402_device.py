@@ -16,7 +16,7 @@ from targetlock.interfaces.od402 import State, decode_state
 from targetlock.interfaces.sim_cia402 import SimDriveSet
 from targetlock.model.drives import DriveParams
 
-from iface_helpers import virtual_bus
+from iface_helpers import virtual_bus, wait_until
 
 PARAMS = DriveParams()
 
@@ -43,15 +43,6 @@ def state(node) -> State:
 
 def cw(node, value: int) -> None:
     node.sdo[o.CONTROLWORD].raw = value
-
-
-def wait_until(pred, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.003)
-    return pred()
 
 
 def enable(node):
