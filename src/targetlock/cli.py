@@ -218,6 +218,8 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object on the last line")
     p.add_argument("--cases", type=int, default=60, help="robustness: number of random cases (default 60)")
     p.add_argument("--seed", type=int, default=0, help="robustness: seed of the random set (default 0)")
+    p.add_argument("--workers", type=int, metavar="N", help="robustness: run the cases on a local Dask cluster of N "
+                                                            "worker processes (default: in this process)")
 
 
 @command("bench", "benchmarks: model, loop, vision, robustness")(_bench_options)
@@ -234,7 +236,7 @@ def _bench(args: argparse.Namespace) -> int:
         print(f"loop: real-time factor {res['realtime_factor']:.0f}; IK step {res['ik_step_ms']:.4f} ms")
     elif args.what == "robustness":
         from .experiments.robustness import bench_robustness
-        res = bench_robustness(args.cases, args.seed)
+        res = bench_robustness(args.cases, args.seed, workers=args.workers)
     else:
         from .bench import bench_vision
         res = bench_vision()

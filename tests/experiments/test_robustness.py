@@ -39,3 +39,10 @@ def test_a_small_run_summarises_every_controller_against_pi():
     assert set(s) == {"pi", "ik"}
     assert s["pi"]["ratio_to_pi_median"] == 1.0 and s["pi"]["cases_worse_than_pi_by_10pct"] == 0
     assert all(math.isfinite(s["ik"][k]) for k in ("rms_median", "rms_p95", "rms_worst", "peak_worst"))
+
+
+def test_the_benchmark_on_dask_workers_gives_the_same_scores():
+    here = run_robustness(2, seed=1, controllers=("pi", "pi-hc"), seconds=3.0)
+    dask = run_robustness(2, seed=1, controllers=("pi", "pi-hc"), seconds=3.0, workers=1)
+    for c in ("pi", "pi-hc"):
+        assert [r["rms_px"] for r in dask["per_case"][c]] == [r["rms_px"] for r in here["per_case"][c]]

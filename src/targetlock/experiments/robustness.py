@@ -176,32 +176,53 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
             "out_of_view": float(np.mean(out[sel])), "rest_rms_px": float(np.sqrt(np.mean(rest ** 2)))}
 
 
+def score_run(cfg: RunConfig) -> dict:
+    """Run one case's config and score it (:func:`score`); a task of its own on a Dask worker."""
+    s = run_target_lock(cfg)
+    return score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
+
+
 def run_robustness(n_cases: int = 60, seed: int = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
-                   seconds: float = 12.0, progress: bool = False) -> dict:
-    """Run every controller on every case; returns per-case scores and the per-controller summary."""
+                   seconds: float = 12.0, progress: bool = False, workers: int | None = None) -> dict:
+    """Run every controller on every case; returns per-case scores and the per-controller summary.
+
+    ``workers``: run the cases on a local Dask cluster of that many single-threaded worker processes
+    (the sweep engine, :func:`targetlock.experiments.sweep.dask_client`) instead of in this process."""
     cases = draw_cases(n_cases, seed, seconds)
     if "pi" not in controllers:
         controllers = ("pi",) + tuple(controllers)
     per: dict[str, list[dict]] = {c: [] for c in controllers}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="targetlock-robustness-") as tmp:
+        configs = []
         for case in cases:
             path = Path(tmp) / f"case{case.index}.csv"
             with path.open("w", newline="") as fh:
                 w = csv.writer(fh)
                 w.writerow(["t", "x", "y", "z"])
                 w.writerows(case.waypoints.tolist())
-            for c in controllers:
-                cfg = case_config(case, c, path, seconds, seed)
-                s = run_target_lock(cfg)
-                sc = score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
+            configs.append([case_config(case, c, path, seconds, seed) for c in controllers])
+        if workers:
+            from .sweep import dask_client
+            client, cluster = dask_client(None, workers)
+            try:
+                futures = [client.map(score_run, row, pure=False) for row in configs]
+                scores = [client.gather(row) for row in futures]
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+        else:
+            scores = [[score_run(cfg) for cfg in row] for row in configs]
+        for case, row in zip(cases, scores):
+            for c, sc in zip(controllers, row):
                 sc.update(case=case.index, motion=case.motion, distance=case.distance)
                 per[c].append(sc)
             if progress:
                 print(case.describe() + ": " + ", ".join(f"{c} {per[c][-1]['rms_px']:.0f}" for c in controllers),
                       flush=True)
     return {"seed": seed, "cases": n_cases, "seconds": seconds, "wall_seconds": time.perf_counter() - t0,
-            "per_case": per, "summary": summarise(per)}
+            "workers": workers or 0, "per_case": per, "summary": summarise(per)}
 
 
 def summarise(per: dict[str, list[dict]]) -> dict:
@@ -241,17 +262,19 @@ def format_table(summary: dict) -> list[str]:
     return lines
 
 
-def bench_robustness(n_cases: int = 60, seed: int = 0) -> dict:
+def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = None) -> dict:
     """``targetlock bench robustness``: print the table; returns the summary (the JSON line)."""
     from ..config import ConfigError
     if not 1 <= n_cases <= 10000:
         raise ConfigError(f"--cases = {n_cases}; allowed: [1, 10000]")
     if seed < 0:
         raise ConfigError(f"--seed = {seed}; allowed: [0, 2^63)")
-    r = run_robustness(n_cases, seed)
+    if workers is not None and not 1 <= workers <= 512:
+        raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
+    r = run_robustness(n_cases, seed, workers=workers)
     print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
           f"unless '+oracle'; rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
     print("\n".join(format_table(r["summary"])))
-    print(f"({r['wall_seconds']:.0f} s on one core)")
+    print(f"({r['wall_seconds']:.0f} s " + (f"on {workers} Dask workers)" if workers else "on one core)"))
     return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
             "controllers": r["summary"]}

@@ -42,7 +42,7 @@ from ..config import ConfigError, param, save_toml
 from ..model.twin import PRESETS, merge, preset_overrides
 from .target_lock import RunConfig
 
-__all__ = ["SweepSpec", "Case", "load_spec", "expand", "run_case", "run_cases", "METRICS"]
+__all__ = ["SweepSpec", "Case", "load_spec", "expand", "run_case", "run_cases", "dask_client", "METRICS"]
 
 METRICS = ("rms_px", "peak_px", "p95_px", "mean_px", "rms_x_px", "rms_y_px", "out_of_view_fraction",
            "lost_fraction", "wall_seconds", "realtime_factor")
@@ -176,7 +176,7 @@ def run_case(overrides: dict) -> dict:
     return row
 
 
-def _client(scheduler: str | None, workers: int | None):
+def dask_client(scheduler: str | None, workers: int | None):
     """A Dask client: to ``scheduler`` if given, else to a LocalCluster of single-threaded processes."""
     try:
         from distributed import Client, LocalCluster
@@ -196,7 +196,7 @@ def _client(scheduler: str | None, workers: int | None):
 def run_cases(cases: list[Case], *, scheduler: str | None = None, workers: int | None = None,
               on_result: Callable[[Case, dict], None] | None = None) -> list[dict]:
     """Run ``cases`` on Dask; ``on_result(case, row)`` is called as each finishes. Rows in case order."""
-    client, cluster = _client(scheduler, workers)
+    client, cluster = dask_client(scheduler, workers)
     try:
         from distributed import as_completed
         futures = {client.submit(run_case, c.overrides, key=f"targetlock-case-{c.index}-{id(cases)}", pure=False): c
