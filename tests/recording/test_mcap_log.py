@@ -153,3 +153,15 @@ def test_a_vision_run_records_its_frames_with_annotations(tmp_path):
     img = cv2.imdecode(np.frombuffer(base64.b64decode(images[-1][1]["data"]), np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (576, 720, 3) and images[-1][1]["format"] == "jpeg"
     assert notes[-1][1]["circles"], "the tracked target is drawn on the last frame"
+
+
+def test_quaternions_match_scipy_for_rotations_of_every_kind():
+    from scipy.spatial.transform import Rotation
+
+    from targetlock.recording.mcap_log import quaternion
+    rots = Rotation.random(200, random_state=4)
+    extra = Rotation.from_rotvec([[np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi], [0, 0, 0]])   # trace <= 0 branches
+    for r in list(rots) + list(extra):
+        q = np.array(quaternion(r.as_matrix()))
+        ref = r.as_quat()
+        assert min(np.abs(q - ref).max(), np.abs(q + ref).max()) < 1e-9
