@@ -130,7 +130,8 @@ class SimNatNetServer:
     """
 
     def __init__(self, config: SimNatNetConfig,
-                 pose_source: Callable[[], tuple[np.ndarray, np.ndarray] | None],
+                 pose_source: Callable[[], tuple[np.ndarray, np.ndarray]
+                                       | tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]] | None],
                  names: dict[int, str] | None = None) -> None:
         self.config = config
         self.pose_source = pose_source

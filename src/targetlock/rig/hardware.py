@@ -101,7 +101,7 @@ class MocapObservations(ObservationSource):
         while self.next_frame * period <= now + 1e-9:
             m = self.measure()
             valid = m is not None and bool(np.all(np.isfinite(m[0])))
-            offset = m[0] if valid else np.array([np.nan, np.nan])
+            offset = m[0] if m is not None and valid else np.array([np.nan, np.nan])
             t = self.next_frame * period
             self.line.push(t, Observation(capture_time=t, offset=offset, valid=valid, frame_index=self.next_frame,
                                           truth=offset, arrival_time=t + self.camera.latency))
@@ -157,10 +157,10 @@ class HardwareRig(Rig):
         except BaseException:
             self.client.stop()
             raise
-        self.drives = SafeDrives(inner, config.safety, clock=lambda: time.monotonic() - self._t0)
+        self.drives: SafeDrives = SafeDrives(inner, config.safety, clock=lambda: time.monotonic() - self._t0)
         ids = self.client.body_ids
         if obs.kind == "mocap":
-            self.observations = MocapObservations(self.client, camera, base_id=ids["base"], tip_id=ids["tip"],
+            self.observations: MocapObservations | CameraObservations = MocapObservations(self.client, camera, base_id=ids["base"], tip_id=ids["tip"],
                                                   target_id=ids["target"], clock_offset=self._t0)
         else:
             from ..vision.live import CameraObservations

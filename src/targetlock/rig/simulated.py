@@ -116,8 +116,8 @@ class SimulatedRig(Rig):
         self.setpoint_rad = np.zeros(2)
         self.dt = twin.model_dt
         self.frame_hook = frame_hook
-        self.drives = SimDrives(self)
-        self.observations = _LatencySource(twin.camera.latency)
+        self.drives: SimDrives = SimDrives(self)
+        self.observations: _LatencySource = _LatencySource(twin.camera.latency)
         self._settle(settle_seconds)
         self.start_camera_pose = self.camera_pose()
         self.scene = Scene(twin.scene, twin.camera, self.start_camera_pose)
