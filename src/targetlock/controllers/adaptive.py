@@ -36,12 +36,18 @@ import math
 import numpy as np
 
 from ..estimation import BacklashEstimator, DelayEstimator, JacobianEstimator, prior_jacobian
+from ..model.camera import CameraParams
+from ..model.endoscope import EndoscopeParams
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
 from .pi import History
 
 __all__ = ["AdaptiveController"]
+
+
+TUNED_DEPTH = 0.12
+"""m: the target distance at which the report chose I = 300 (§5.2); PI's gain is right there."""
 
 
 class AdaptiveController(Controller):
@@ -67,7 +73,12 @@ class AdaptiveController(Controller):
         self.history.clear()
         self.history.push(t, motor)
         prior = self._prior(motor, k.depth)
-        self.nominal_scale = float(math.sqrt(abs(np.linalg.det(prior))))   # px/rad where PI's I is right
+        # px/rad where PI's I is right: the geometry the report tuned I = 300 in (12 cm, f = 300 px, its
+        # scope), whatever this controller knows; with the plant's true depth (oracle) the schedule must
+        # still lower the gain at 1-2 cm, not treat the true Jacobian as PI's.
+        tuned = prior_jacobian(motor, camera=CameraParams(), depth=TUNED_DEPTH, tip_gain=cfg.tip_gain,
+                               tip_length=EndoscopeParams().tip_length, n_elements=k.endoscope.n_elements)
+        self.nominal_scale = float(math.sqrt(abs(np.linalg.det(tuned))))
         # Bounds of J: from the farthest (15 cm, 25 % margin) to the nearest (1 cm, 50 % margin) distance
         # the lock is made for; the gain clamp below is what keeps far distances PI-like.
         far = self._prior(motor, max(0.15, k.depth))
