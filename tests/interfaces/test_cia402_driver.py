@@ -39,8 +39,10 @@ def test_state_machine_disable_and_explicit_enable():
     with rig() as (cfg, sims, drives):
         drives.disable()
         assert [d.state for d in sims.drives] == [State.SWITCH_ON_DISABLED] * 2
+        assert drives.is_disabled() is True            # what a stopped run reports as "confirmed"
         drives.enable()
         assert drives.states() == [State.OPERATION_ENABLED] * 2
+        assert drives.is_disabled() is False
 
 
 def test_no_motion_before_homing():

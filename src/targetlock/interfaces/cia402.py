@@ -1236,6 +1236,15 @@ class CanopenDrives(Drives):
         """CiA 402 state of each drive (statusword by TPDO when fresh, else SDO)."""
         return [decode_state(d.current_statusword()) for d in self.drives]
 
+    def is_disabled(self) -> bool | None:
+        """True when every drive's statusword shows its power stage off, False when one shows it on,
+        None when a drive cannot be read (link lost, SDO not answering)."""
+        try:
+            words = [d.current_statusword() for d in self.drives]
+        except DriveFault:
+            return None
+        return all(CiA402Drive.power_off_confirmed(w) for w in words)
+
     def disable(self) -> None:
         """Stop commanding and remove power: quick stop, then disable voltage. Any thread.
 
