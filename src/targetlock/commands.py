@@ -446,7 +446,7 @@ def _sweep(args: argparse.Namespace) -> int:
             bar.close()
         wall = time.perf_counter() - t0
         workers = args.scheduler or str(args.workers or os.cpu_count())
-        summary = sweep_summary(spec, cases, rows, wall, workers)
+        summary = sweep_summary(cases, rows, wall, workers)
         plot_sweep(cases, rows, run.file("sweep.png"))
         summary["run_folder"] = str(run.path)
         run.write_summary(summary)

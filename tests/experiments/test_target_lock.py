@@ -116,35 +116,24 @@ def test_compare_command_table(tmp_path, capsys):
 
 def test_the_slew_limit_is_a_property_of_time_not_of_the_loop_rate():
     """Same scenario at 50, 200 and 1000 Hz: the same tracking within a few percent."""
-    import dataclasses as _dc
-
-    from targetlock.controllers import ControllerConfig as _CC
-    from targetlock.experiments.target_lock import RunConfig as _RC, run_target_lock as _run
-    from targetlock.loop.runner import LoopConfig as _LC
     rms = []
     for rate in (50.0, 200.0, 1000.0):
-        cfg = _RC(controller=_CC(kind="pi"), loop=_LC(rate=rate, seconds=8.0))
-        rms.append(_run(cfg)["rms_px"])
+        cfg = RunConfig(controller=ControllerConfig(kind="pi"), loop=LoopConfig(rate=rate, seconds=8.0))
+        rms.append(run_target_lock(cfg)["rms_px"])
     assert max(rms) / min(rms) < 1.03, rms
 
 
 def test_model_2_compensation_does_not_chatter_through_the_centre():
     """A path across the centre: pi-hc2 makes no more set-point jumps (> 0.5°/tick) near the centre
     than plain PI and turns the handles about as much (before: ±9° flips, ~13× PI's travel)."""
-    import dataclasses as _dc
-
-    import numpy as _np
-
-    from targetlock.controllers import ControllerConfig as _CC
-    from targetlock.experiments.target_lock import RunConfig as _RC, run_target_lock as _run
-    from targetlock.loop.runner import LoopConfig as _LC
     out = {}
     for kind in ("pi", "pi-hc2"):
-        cfg = _RC(controller=_CC(kind=kind), loop=_LC(seconds=20.0))
-        scene = _dc.replace(cfg.twin.scene, start_tip_deg=(0.0, 0.0), linear_length=0.06, linear_direction_deg=0.0)
-        d = _run(_dc.replace(cfg, twin=_dc.replace(cfg.twin, scene=scene)))["_data"]
-        steps = _np.abs(_np.diff(d[:, 10]))
-        out[kind] = (int(_np.sum((steps > 0.5) & (_np.abs(d[1:, 8]) < 5.0))), float(steps.sum()))
+        cfg = RunConfig(controller=ControllerConfig(kind=kind), loop=LoopConfig(seconds=20.0))
+        scene = dataclasses.replace(cfg.twin.scene, start_tip_deg=(0.0, 0.0), linear_length=0.06,
+                                    linear_direction_deg=0.0)
+        d = run_target_lock(dataclasses.replace(cfg, twin=dataclasses.replace(cfg.twin, scene=scene)))["_data"]
+        steps = np.abs(np.diff(d[:, 10]))
+        out[kind] = (int(np.sum((steps > 0.5) & (np.abs(d[1:, 8]) < 5.0))), float(steps.sum()))
         assert d[:, 8].min() < 0.0 < d[:, 8].max()            # the handle did cross the centre
     assert out["pi-hc2"][0] <= out["pi"][0] + 5
     assert out["pi-hc2"][1] < 1.5 * out["pi"][1]

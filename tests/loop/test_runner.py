@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from targetlock.controllers import ControllerConfig, make_controller
+from targetlock.controllers import ControllerConfig
 from targetlock.experiments.target_lock import RunConfig, build_controller, build_rig
 from targetlock.loop.clock import SimClock, WallClock
 from targetlock.loop.runner import ControlLoop

@@ -1,5 +1,4 @@
 """Frame sources: video file round trip, the twin's rendered source, capture device errors."""
-import json
 
 import numpy as np
 import pytest

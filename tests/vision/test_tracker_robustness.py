@@ -3,7 +3,7 @@ instruments slowly covering the target, dropped frames (issue 14)."""
 import numpy as np
 import pytest
 
-from targetlock.vision import FeatureTracker, PlanarTarget, Renderer, RenderSettings, TrackerSettings
+from targetlock.vision import FeatureTracker, PlanarTarget, Renderer, RenderSettings
 from targetlock.vision.texture import mucosa_texture
 
 P_SEL = (0.021, -0.013)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 
 from .target_lock import RunConfig, run_target_lock
 

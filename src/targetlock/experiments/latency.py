@@ -11,7 +11,6 @@ from image differences of the handle in the recorded frames (``motion_in_frames`
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 

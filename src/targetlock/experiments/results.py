@@ -10,7 +10,7 @@ from pathlib import Path
 from ..controllers import ControllerConfig
 from ..loop.runner import LoopConfig
 from ..model.twin import TwinConfig
-from .compare import plot_compare, with_controller, with_latency
+from .compare import plot_compare, with_latency
 from .step_response import plot_step_responses, run_step_responses
 from .target_lock import RunConfig, run_target_lock
 

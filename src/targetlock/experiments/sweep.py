@@ -258,8 +258,7 @@ def group_stats(cases: list[Case], rows: list[dict], by: list[str]) -> list[dict
 
 def categorical(cases: list[Case]) -> list[str]:
     """Varied settings with non-numeric values (controllers, paths, presets): the groups of a sweep."""
-    names = dict.fromkeys(k for c in cases for k in c.varied)
-    return [k for k in names if any(isinstance(c.varied.get(k), (str, bool)) for c in cases)]
+    return [k for k in varied_names(cases) if any(isinstance(c.varied.get(k), (str, bool)) for c in cases)]
 
 
 def plot_sweep(cases: list[Case], rows: list[dict], path: Path) -> None:
@@ -269,7 +268,7 @@ def plot_sweep(cases: list[Case], rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     groups = categorical(cases)
-    numeric = [k for k in dict.fromkeys(k for c in cases for k in c.varied) if k not in groups]
+    numeric = [k for k in varied_names(cases) if k not in groups]
     panels = numeric or ["case"]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.8), dpi=110, squeeze=False)
     labels = [" ".join(str(c.varied.get(g)) for g in groups) or "all" for c in cases]
@@ -299,10 +298,11 @@ def write_case_configs(cases: list[Case], folder: Path) -> list[str]:
 
 
 def varied_names(cases: list[Case]) -> list[str]:
+    """The settings any case varies, in the spec's order."""
     return list(dict.fromkeys(k for c in cases for k in c.varied))
 
 
-def sweep_summary(spec: SweepSpec, cases: list[Case], rows: list[dict], wall: float, workers: str) -> dict:
+def sweep_summary(cases: list[Case], rows: list[dict], wall: float, workers: str) -> dict:
     """The figures a sweep prints: per-group statistics, failures and throughput."""
     per_case = np.array([r.get("case_seconds", math.nan) for r in rows], dtype=float)
     busy = float(np.nansum(per_case))

@@ -173,7 +173,7 @@ class TargetLockEnv(gym.Env):
         self._vec = np.zeros(7)
         self._vec[6] = -1.0
         tick = self._loop.observe()          # the first tick's observation; the action acts on it
-        return self._observe(tick)[0], self._info(tick, self._truth)
+        return self._observe(tick)[0], self._info(tick)
 
     def step(self, action):
         if self._loop is None:
@@ -186,7 +186,7 @@ class TargetLockEnv(gym.Env):
         tick = self._loop.observe()          # the next tick: what the action led to
         obs, err = self._observe(tick)
         reward = -self.penalty if not math.isfinite(err) else -err / self.reward_scale
-        info = self._info(tick, self._truth)
+        info = self._info(tick)
         if truncated:
             self._close_loop()
         return obs, float(reward), False, truncated, info
@@ -221,15 +221,11 @@ class TargetLockEnv(gym.Env):
             return {"state": state, "image": img}
         return state
 
-    def _info(self, tick, truth: np.ndarray | None = None) -> dict[str, Any]:
-        info: dict[str, Any] = {"time": 0.0 if tick is None else tick.time, "preset": self.cfg.twin.preset,
-                                "latency": self.cfg.twin.camera.latency, "distance": self.cfg.twin.scene.distance,
-                                "path": self.cfg.twin.scene.path}
-        if tick is not None:
-            info["true_offset"] = truth
-            info["motor"] = tick.motor.copy()
-            info["observation"] = tick.observation
-        return info
+    def _info(self, tick) -> dict[str, Any]:
+        """The episode's draw, the tick's time (s), true offset (px), motors (rad) and raw observation."""
+        return {"time": tick.time, "preset": self.cfg.twin.preset, "latency": self.cfg.twin.camera.latency,
+                "distance": self.cfg.twin.scene.distance, "path": self.cfg.twin.scene.path,
+                "true_offset": self._truth, "motor": tick.motor.copy(), "observation": tick.observation}
 
     def _close_loop(self) -> None:
         self._loop = None          # the twin holds nothing open; a new episode builds a new rig
