@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from targetlock.controllers import ControllerConfig
+from targetlock.controllers import ControllerConfig, KnowledgeConfig
 from targetlock.experiments.target_lock import RunConfig, build_controller, build_rig
 from targetlock.loop.clock import SimClock, WallClock
 from targetlock.loop.runner import ControlLoop
@@ -17,7 +17,8 @@ def rig_and_ctrl(latency=0.4, **scene):
     twin = twin_config()
     twin = dataclasses.replace(twin, camera=dataclasses.replace(twin.camera, latency=latency),
                                scene=dataclasses.replace(twin.scene, **scene))
-    cfg = RunConfig(twin=twin, controller=ControllerConfig(kind="pi"))
+    # The lab measured the latency: the rig stamps frames with the true one.
+    cfg = RunConfig(twin=twin, controller=ControllerConfig(kind="pi"), knowledge=KnowledgeConfig(latency=latency))
     rig = build_rig(cfg)
     return rig, build_controller(cfg, rig)
 

@@ -56,3 +56,37 @@ def test_target_out_of_view_gives_invalid_observations():
     rig.advance(1.0)
     obs = rig.observations.poll(10.0)
     assert obs and not any(o.valid for o in obs) and all(np.isnan(o.offset).all() for o in obs)
+
+
+def test_frames_are_stamped_with_the_latency_the_rig_was_told_not_the_true_one():
+    """A rig knows only when a frame arrived; it stamps arrival minus the latency it was given."""
+    import dataclasses
+    twin = TwinConfig()
+    twin = dataclasses.replace(twin, camera=dataclasses.replace(twin.camera, latency=0.25))
+    rig = SimulatedRig(twin, stamp_latency=0.4)
+    assert rig.camera.latency == 0.4          # the camera as the rig knows it
+    rig.drives.home()
+    rig.advance(2.0)
+    obs = rig.observations.poll(10.0)
+    true_capture = np.arange(len(obs)) / 22
+    np.testing.assert_allclose([o.arrival_time for o in obs], true_capture + 0.25, atol=1e-9)
+    np.testing.assert_allclose([o.capture_time for o in obs], true_capture + 0.25 - 0.4, atol=1e-9)
+    # The offsets are still those of the true capture instants.
+    np.testing.assert_allclose([o.offset for o in obs], [rig.truth_offset(t) for t in true_capture], atol=1e-9)
+
+
+def test_latency_jitter_delays_frames_within_its_bound_and_keeps_them_in_order():
+    import dataclasses
+    twin = TwinConfig()
+    twin = dataclasses.replace(twin, camera=dataclasses.replace(twin.camera, latency=0.3, latency_jitter=0.05))
+    rig = SimulatedRig(twin, ObservationNoise(seed=4))
+    rig.drives.home()
+    rig.advance(5.0)
+    obs = rig.observations.poll(1e9)
+    true_capture = np.arange(len(obs)) / 22
+    delay = np.array([o.arrival_time for o in obs]) - true_capture
+    assert delay.min() >= 0.3 - 1e-9 and delay.max() <= 0.35 + 1e-9
+    assert np.std(delay) > 0.01                      # it does jitter
+    assert np.all(np.diff([o.arrival_time for o in obs]) >= 0.0)
+    # Frames are stamped from their arrival, so the stamps carry the jitter (as on a real rig).
+    np.testing.assert_allclose([o.capture_time for o in obs], [o.arrival_time - 0.3 for o in obs], atol=1e-12)

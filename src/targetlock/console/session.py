@@ -37,7 +37,7 @@ import numpy as np
 from ..config import ConfigError, from_dict, to_dict, validate
 from ..controllers.base import CONTROLLERS, Controller
 from ..experiments.runfolder import RunFolder
-from ..experiments.target_lock import COLUMNS, RunConfig, RunRecorder, build_controller, plot_run
+from ..experiments.target_lock import COLUMNS, RunConfig, RunRecorder, build_controller, build_rig, plot_run
 from ..rig.base import FrameLog
 from ..interfaces.safety import SafeDrives, SafetyConfig, SafetyTrip
 from ..loop.clock import WallClock
@@ -305,12 +305,11 @@ class ConsoleSession:
         self.twin = rig is None
         self.vision = None
         if self.twin:
-            from ..rig.simulated import SimulatedRig
             from ..vision.pipeline import VisionPipeline
             self.vision = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed)
             self.tap: TapTracker | None = TapTracker(self.vision.tracker, self.vision.window_px)
             self.vision.tracker = self.tap
-            rig = SimulatedRig(cfg.twin, cfg.tracker, frame_hook=self.vision)
+            rig = build_rig(cfg, self.vision)
             rig.scene = MovableScene(cfg.twin.scene, cfg.twin.camera, rig.start_camera_pose)
             rig.drives = SafeDrives(rig.drives, SafetyConfig(max_rate=cfg.controller.max_rate))
             # Render and track the first frame now: compiling the renderer and tracker takes seconds, which

@@ -2,7 +2,8 @@
 
 A seeded random set of cases, each a plant the controllers do NOT know: a scope drawn around one of
 the presets (friction, slack or pretension, cable and tip stiffness, handle gain ±15 %, drive speed
-and time constant), camera focal length ±10 %, video latency 0.25–0.6 s, 15–25 fps, target distance
+and time constant), camera focal length ±10 %, video latency 0.25–0.6 s with 0–40 ms of frame-time jitter
+(frames are stamped as a rig stamps them: arrival time minus the nominal 0.4 s), 15–25 fps, target distance
 1–15 cm (log-uniform: the report's recommended 1–2 cm is well represented) with the path scaled to the
 distance (the same angular motion), tracker noise and dropped frames, a random start bend, and one
 of six target motions none of the controllers was tuned on:
@@ -139,7 +140,7 @@ def draw_cases(n: int, seed: int, seconds: float = 12.0) -> list[Case]:
                 "handle_radius": base.handle_radius * u(0.85, 1.15)}
         drive = {"time_constant": u(0.01, 0.04), "max_velocity_ticks": u(70000.0, 100000.0)}
         f_px = 300.0 * u(0.9, 1.1)
-        camera = {"fx": f_px, "fy": f_px, "fps": u(15.0, 25.0), "latency": u(0.25, 0.6)}
+        camera = {"fx": f_px, "fy": f_px, "fps": u(15.0, 25.0), "latency": u(0.25, 0.6), "latency_jitter": u(0.0, 0.04)}
         d = float(math.exp(rng.uniform(math.log(0.01), math.log(0.15))))
         start = (u(-35.0, 35.0), u(-25.0, 25.0))
         motion = MOTIONS[i % len(MOTIONS)]

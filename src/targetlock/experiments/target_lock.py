@@ -50,7 +50,10 @@ class RunConfig:
 
 
 def build_rig(cfg: RunConfig, frame_hook=None) -> SimulatedRig:
-    return SimulatedRig(cfg.twin, cfg.tracker, frame_hook=frame_hook)
+    """The twin, stamping frames as a real rig would: arrival time minus the latency the lab knows
+    (``cfg.knowledge``; the true latency only with ``knowledge.source = "oracle"``)."""
+    return SimulatedRig(cfg.twin, cfg.tracker, frame_hook=frame_hook,
+                        stamp_latency=resolve_knowledge(cfg.knowledge, cfg.twin).latency)
 
 
 def build_controller(cfg: RunConfig, rig):

@@ -33,6 +33,8 @@ class CameraParams:
     k2: float = param(0.0, lo=-1.0, hi=1.0, doc="radial distortion r^4 coefficient")
     fps: float = param(22.0, unit="1/s", lo=0.1, hi=1000.0, doc="frame rate (report: 22 fps)")
     latency: float = param(0.4, unit="s", lo=0.0, hi=5.0, doc="capture-to-controller video latency (report: 0.4 s)")
+    latency_jitter: float = param(0.0, unit="s", lo=0.0, hi=1.0,
+                                  doc="extra delay of each frame, uniform in [0, jitter] (grabber, USB, encoder); frames stay in order")
 
     def check(self, prefix: str = "") -> None:
         for axis, c, size in (("x", self.cx, self.width), ("y", self.cy, self.height)):
@@ -114,8 +116,10 @@ class LatencyLine:
         self._heap: list[tuple[float, int, Any]] = []
         self._count = 0
 
-    def push(self, capture_time: float, item: Any) -> None:
-        heapq.heappush(self._heap, (capture_time + self.latency, self._count, (capture_time, item)))
+    def push(self, capture_time: float, item: Any, arrival: float | None = None) -> None:
+        """Hold ``item`` until ``arrival`` (s; default ``capture_time + latency``)."""
+        when = capture_time + self.latency if arrival is None else arrival
+        heapq.heappush(self._heap, (when, self._count, (capture_time, item)))
         self._count += 1
 
     def pop_ready(self, now: float) -> list[tuple[float, Any]]:

@@ -3,8 +3,12 @@
 Frames are captured at the camera frame rate on the model's time grid. Each capture computes
 where the target really is in the image (the ideal tracker), optionally corrupted by noise,
 dropped frames and outliers, and puts the observation on the latency line; the loop receives it
-``camera.latency`` seconds after capture. A vision pipeline can replace the ideal tracker through
-``frame_hook`` (see :mod:`targetlock.vision`).
+``camera.latency`` seconds after capture (plus up to ``camera.latency_jitter``). A vision pipeline
+can replace the ideal tracker through ``frame_hook`` (see :mod:`targetlock.vision`).
+
+Time stamps are a real rig's: a frame's ``capture_time`` is its arrival time minus the latency the
+rig was *told* (``stamp_latency``, e.g. the controller's nominal 0.4 s), not the true capture
+time, which no rig knows. Only ``stamp_latency=None`` (oracle) stamps with the true latency.
 """
 from __future__ import annotations
 
@@ -106,10 +110,19 @@ class SimulatedRig(Rig):
 
     def __init__(self, twin: TwinConfig, noise: ObservationNoise | None = None, *,
                  frame_hook: Callable[["SimulatedRig", float, np.ndarray], Observation | None] | None = None,
-                 settle_seconds: float = 4.0) -> None:
+                 settle_seconds: float = 4.0, stamp_latency: float | None = None) -> None:
+        """``stamp_latency`` (s): the video latency the rig subtracts from each frame's arrival time to
+        stamp its capture time (what the lab configured or measured); ``None``: the true latency."""
         self.twin = twin
-        self.camera = twin.camera
+        if stamp_latency is not None and not 0.0 <= stamp_latency <= 5.0:
+            raise ValueError(f"stamp_latency = {stamp_latency!r} s; allowed: [0, 5] s")
+        self.stamp_latency = twin.camera.latency if stamp_latency is None else float(stamp_latency)
+        self._last_arrival = -math.inf
+        # The camera as the rig knows it: its latency is the one it stamps with.
+        self.camera = dataclasses.replace(twin.camera, latency=self.stamp_latency)
         self.noise = noise or ObservationNoise()
+        # Its own stream, so turning jitter on does not change the tracker noise's draws.
+        self._jitter_rng = np.random.default_rng([self.noise.seed, 1])
         self.rng = np.random.default_rng(self.noise.seed)
         self.params = pack_params(twin.endoscope, twin.drive)
         self.state = initial_state(1)
@@ -186,7 +199,15 @@ class SimulatedRig(Rig):
             obs = self._ideal_observation(t, truth)
         self.observations.frame_log.record(t, obs is not None and obs.valid)
         if obs is not None:
-            self.observations.line.push(t, dataclasses.replace(obs, arrival_time=t + self.twin.camera.latency))
+            cam = self.twin.camera
+            arrival = t + cam.latency
+            if cam.latency_jitter > 0.0:
+                arrival += cam.latency_jitter * self._jitter_rng.random()
+            arrival = max(arrival, self._last_arrival)      # a video stream delivers in order
+            self._last_arrival = arrival
+            stamped = arrival - self.stamp_latency
+            self.observations.line.push(t, dataclasses.replace(obs, capture_time=stamped, arrival_time=arrival),
+                                        arrival=arrival)
 
     def _ideal_observation(self, t: float, truth: np.ndarray) -> Observation | None:
         nz = self.noise
