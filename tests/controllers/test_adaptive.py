@@ -39,23 +39,38 @@ def test_supervisor_trusts_a_model_that_predicts_the_image():
     j = np.array([[-500.0, 40.0], [-30.0, -450.0]])
     drive(c, lambda m, t: j @ m)
     assert c.trust > 0.8
-    assert np.linalg.norm(c.jacobian.j - j) / np.linalg.norm(j) < 0.15
+    assert np.linalg.norm(c.jacobian.j - j) / np.linalg.norm(j) < 0.2
 
 
-def test_supervisor_falls_back_while_the_image_contradicts_the_model():
+def test_supervisor_distrusts_an_image_that_contradicts_the_model():
     rng = np.random.default_rng(0)
     c = make()
     drive(c, lambda m, t: rng.normal(0.0, 80.0, 2))     # the image moves, but not with the motors
     assert c.trust == 0.0
-    assert c.gain_factor == 1.0                          # the fallback is PI's own gain, not a more cautious one
 
 
-def test_a_trusted_large_jacobian_lowers_the_gain_and_a_small_one_raises_it_at_most_to_the_clamp():
-    near, far = make(), make()
-    drive(near, lambda m, t: np.array([[-1500.0, 0.0], [0.0, -1450.0]]) @ m, width=0.0)   # ≈ 1.5 cm
-    drive(far, lambda m, t: np.array([[-150.0, 0.0], [0.0, -140.0]]) @ m)      # farther than the lock is made for
-    assert near.trust > 0.8 and near.gain_factor < 0.4
-    assert far.trust > 0.8 and 1.0 < far.gain_factor <= far.cfg.adaptive_max_gain
+def test_a_tracker_jump_makes_it_cautious_again():
+    c = make()
+    j = np.array([[-500.0, 40.0], [-30.0, -450.0]])
+    drive(c, lambda m, t: j @ m)
+    assert c.trust > 0.8 and c.caution < 0.05
+    m = np.array([0.1, 0.1])
+    c.step(Observation(capture_time=7.8, offset=j @ m + [300.0, -250.0], valid=True), m, 8.1)   # a jump
+    assert c.caution > 0.2
+
+
+def test_the_step_is_the_estimated_jacobian_inverse_of_the_predicted_error():
+    """Near (large J) the same offset asks for a smaller handle motion than far (small J)."""
+    steps = {}
+    for name, j in (("near", np.array([[-1500.0, 0.0], [0.0, -1450.0]])), ("far", np.array([[-300.0, 0.0], [0.0, -290.0]]))):
+        c = make()
+        drive(c, lambda m, t, j=j: j @ m)
+        assert np.linalg.norm(c.jacobian.j - j) / np.linalg.norm(j) < 0.2
+        motor = c.effective.copy()
+        # A frame that shows 30 px of error and nothing still in flight.
+        command = c._servo(np.array([30.0, 0.0]), motor, c.effective.copy(), 8.0)
+        steps[name] = abs(command[0] - motor[0])
+    assert steps["near"] < 0.35 * steps["far"]
 
 
 def step_config(distance, kind, knowledge=None, seconds=10.0):

@@ -60,14 +60,12 @@ class ControllerConfig:
                                doc="delay of the motor position to match the video (-1: the camera latency)")
     target_prediction: float = param(1.0, lo=0.0, hi=2.0,
                                      doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
-    adaptive_max_gain: float = param(1.5, lo=1.0, hi=10.0,
-                                     doc="adaptive: largest integral gain it schedules, × PI's (far distances)")
-    adaptive_cautious_depth: float = param(0.03, unit="m", lo=0.005, hi=2.0,
+    adaptive_cautious_depth: float = param(0.015, unit="m", lo=0.005, hi=2.0,
                                            doc="adaptive: distance assumed for motion not yet seen in the image until its estimate is trusted")
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
-    adaptive_prediction: float = param(0.0, lo=0.0, hi=1.0,
-                                       doc="adaptive: weight of its latency prediction with the estimated Jacobian")
+    adaptive_servo_gain: float = param(0.3, lo=0.01, hi=1.0, doc="adaptive: fraction of the predicted error removed per frame")
+    adaptive_backlash_estimate: bool = param(False, doc="adaptive: play operator uses the online backlash estimate (else the nominal)")
     adaptive_max_backlash: float = param(0.1, unit="rad", lo=0.0, hi=1.0,
                                          doc="adaptive: largest backlash width (handle) its play operator models")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
