@@ -11,6 +11,7 @@ def test_cases_are_seeded_and_within_the_stated_ranges():
     assert {c.motion for c in a} == set(MOTIONS)
     for c in a:
         assert 0.25 <= c.camera["latency"] <= 0.6 and 15.0 <= c.camera["fps"] <= 25.0
+        assert 0.0 <= c.camera["latency_jitter"] <= 0.04
         assert 0.01 <= c.distance <= 0.15
         assert np.all(np.isfinite(c.waypoints)) and np.all(np.diff(c.waypoints[:, 0]) > 0)
     assert [c.camera for c in draw_cases(12, seed=4)] != [c.camera for c in a]
@@ -31,6 +32,20 @@ def test_out_of_view_counts_as_the_half_diagonal():
     s = score(data, 720, 576, after=1.0)
     assert s["peak_px"] == math.hypot(360, 288)
     assert 0.3 < s["out_of_view"] < 0.4
+
+
+def test_rest_motion_sees_an_oscillation_but_not_a_steady_offset():
+    t = np.arange(0.0, 12.0, 0.02)
+    steady, hunting = np.zeros((t.size, 16)), np.zeros((t.size, 16))
+    for d in (steady, hunting):
+        d[:, 0] = t
+    steady[:, 1] = 30.0                                   # 30 px off centre, not moving
+    hunting[:, 1] = 30.0 * np.sign(np.sin(2 * np.pi * 0.5 * t))  # ±30 px, back and forth
+    for d in (steady, hunting):
+        d[:, 3] = np.hypot(d[:, 1], d[:, 2])
+    a, b = score(steady, 720, 576, after=1.0), score(hunting, 720, 576, after=1.0)
+    assert a["rest_rms_px"] == b["rest_rms_px"] == 30.0
+    assert a["rest_motion_px"] == 0.0 and b["rest_motion_px"] > 25.0
 
 
 def test_a_small_run_summarises_every_controller_against_pi():

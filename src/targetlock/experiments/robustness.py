@@ -19,8 +19,9 @@ Every controller runs with its **nominal** knowledge (preset ``calibrated``, 0.4
 name ends in ``+oracle`` (then it gets the plant's truth). Scores per case: the rms and peak of the
 true image error, where a sample with the target out of the image counts as the image's half
 diagonal (so losing the target is never rewarded), the fraction of time out of view, and the rms of
-the error over the last 3 s of the resting cases (``move`` and ``step``: sustained oscillation at rest
-shows there). Ratios are to PI (I = 300) on the same case.
+the error over the last 3 s of the resting cases (``move`` and ``step``), and the target's motion in the
+image over those 3 s (rms about its mean position: a sustained oscillation at rest shows there, a
+steady offset does not). Ratios are to PI (I = 300) on the same case.
 """
 from __future__ import annotations
 
@@ -172,9 +173,15 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
     out = ~np.isfinite(err)
     lost_px = 0.5 * math.hypot(width, height)
     e = np.where(out, lost_px, err)[sel]
-    rest = np.where(out, lost_px, err)[t >= t[-1] - rest_window]
+    last = t >= t[-1] - rest_window
+    rest = np.where(out, lost_px, err)[last]
+    # Oscillation at rest: how much the target still moves in the image (rms about its mean position);
+    # a target out of view in the window counts as the half diagonal.
+    xy = data[last][:, 1:3]
+    motion = lost_px if np.any(out[last]) else float(np.sqrt(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))))
     return {"rms_px": float(np.sqrt(np.mean(e ** 2))), "peak_px": float(np.max(e)),
-            "out_of_view": float(np.mean(out[sel])), "rest_rms_px": float(np.sqrt(np.mean(rest ** 2)))}
+            "out_of_view": float(np.mean(out[sel])), "rest_rms_px": float(np.sqrt(np.mean(rest ** 2))),
+            "rest_motion_px": motion}
 
 
 def score_run(cfg: RunConfig) -> dict:
@@ -238,7 +245,8 @@ def summarise(per: dict[str, list[dict]]) -> dict:
         pi_kept = np.array([r["out_of_view"] == 0 for r in pi])
         near = np.array([r["distance"] <= 0.02 for r in rows])
         in_view_near = 1.0 - np.array([r["out_of_view"] for r in rows])[near]
-        rest = np.array([r["rest_rms_px"] for r, p in zip(rows, pi) if r["motion"] in RESTING])
+        rest = np.array([r["rest_rms_px"] for r in rows if r["motion"] in RESTING])
+        motion = np.array([r["rest_motion_px"] for r in rows if r["motion"] in RESTING])
         out[c] = {"rms_median": float(np.median(rms)), "rms_p95": float(np.percentile(rms, 95)), "rms_worst": float(rms.max()),
                   "peak_median": float(np.median(peak)), "peak_p95": float(np.percentile(peak, 95)),
                   "peak_worst": float(peak.max()), "left_image_fraction": float(left.mean()),
@@ -247,19 +255,21 @@ def summarise(per: dict[str, list[dict]]) -> dict:
                   "median_ratio_of_medians": float(np.median(rms) / np.median([r["rms_px"] for r in pi])),
                   "cases_worse_than_pi_by_10pct": int(np.sum(ratio > 1.1)),
                   "in_view_near_median": float(np.median(in_view_near)) if in_view_near.size else math.nan,
-                  "rest_rms_worst": float(rest.max()) if rest.size else math.nan}
+                  "rest_rms_worst": float(rest.max()) if rest.size else math.nan,
+                  "rest_motion_median": float(np.median(motion)) if motion.size else math.nan,
+                  "rest_motion_worst": float(motion.max()) if motion.size else math.nan}
     return out
 
 
 def format_table(summary: dict) -> list[str]:
     lines = [f"{'controller':<18} {'rms med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
-             f"{'left img':>8} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8}"]
+             f"{'left img':>8} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21}"]
     for c, s in summary.items():
         lines.append(f"{c:<18} {s['rms_median']:>7.1f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
                      f"{s['peak_median']:>8.0f} {s['peak_p95']:>6.0f} {s['peak_worst']:>6.0f} | "
                      f"{100 * s['left_image_fraction']:>7.0f}% {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
                      f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
-                     f"{s['rest_rms_worst']:>8.1f}")
+                     f"{s['rest_rms_worst']:>8.1f} {s['rest_motion_median']:>10.1f} / {s['rest_motion_worst']:>8.1f}")
     return lines
 
 
