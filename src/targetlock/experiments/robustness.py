@@ -262,12 +262,12 @@ def summarise(per: dict[str, list[dict]]) -> dict:
 
 
 def format_table(summary: dict) -> list[str]:
-    lines = [f"{'controller':<18} {'rms med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
-             f"{'left img':>8} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21}"]
+    lines = [f"{'controller':<18} {'rms med':>7} {'xPI med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
+             f"{'left img':>8} {'PI kept':>7} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21}"]
     for c, s in summary.items():
-        lines.append(f"{c:<18} {s['rms_median']:>7.1f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
+        lines.append(f"{c:<18} {s['rms_median']:>7.1f} {s['median_ratio_of_medians']:>7.2f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
                      f"{s['peak_median']:>8.0f} {s['peak_p95']:>6.0f} {s['peak_worst']:>6.0f} | "
-                     f"{100 * s['left_image_fraction']:>7.0f}% {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
+                     f"{100 * s['left_image_fraction']:>7.0f}% {s['left_where_pi_kept']:>7d} {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
                      f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
                      f"{s['rest_rms_worst']:>8.1f} {s['rest_motion_median']:>10.1f} / {s['rest_motion_worst']:>8.1f}")
     return lines
