@@ -95,7 +95,9 @@ class TargetLockVectorEnv(VectorEnv):
         self.autoreset_mode = AutoresetMode(autoreset_mode)
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.render_mode = None
-        self.single_action_space, self.single_observation_space = env_spaces(self.base)
+        action_space, self.single_observation_space = env_spaces(self.base)
+        self.single_action_space = action_space
+        self.action_low, self.action_high = action_space.low, action_space.high   # rad per tick (float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
 
@@ -125,7 +127,8 @@ class TargetLockVectorEnv(VectorEnv):
         self.state = initial_state(n)
         self.setpoint_rad = np.zeros((n, 2))      # what the drives were sent (rad)
         self.setpoint = np.zeros((n, 2))          # the agent controller's set-point (rad)
-        self.latency, self.fps = np.zeros(n), np.zeros(n)
+        self.latency, self.fps, self.distance = np.zeros(n), np.zeros(n), np.zeros(n)   # s, 1/s, m
+        self.preset, self.path = np.full(n, "", dtype=object), np.full(n, "", dtype=object)
         self.k = np.zeros(n, dtype=np.int64)      # ticks observed
         self.steps = np.zeros(n, dtype=np.int64)  # actions taken this episode
         self.vec = np.zeros((n, 7))               # the observation vector + the time it was made
@@ -224,6 +227,9 @@ class TargetLockVectorEnv(VectorEnv):
             cfgs.append(cfg)
         self.params[idx] = pack_params([c.twin.endoscope for c in cfgs], self.base.twin.drive)
         self.latency[idx] = [c.twin.camera.latency for c in cfgs]
+        self.preset[idx] = [c.twin.preset for c in cfgs]
+        self.path[idx] = [c.twin.scene.path for c in cfgs]
+        self.distance[idx] = [c.twin.scene.distance for c in cfgs]
         self.fps[idx] = [c.twin.camera.fps for c in cfgs]
 
         # settle: the twin's ramp to the start angles, all sub-envs in one kernel call per stage
@@ -287,7 +293,7 @@ class TargetLockVectorEnv(VectorEnv):
 
     def _act(self, idx: np.ndarray, actions: np.ndarray) -> None:
         """The agent controller's set-point and the loop's send, as ``ControlLoop.act`` with ``_Agent``."""
-        a = np.clip(actions, self.single_action_space.low, self.single_action_space.high)
+        a = np.clip(actions, self.action_low, self.action_high)
         a = np.where(np.isfinite(a), a, 0.0)                       # a NaN action holds the handle
         sp = self.setpoint[idx]
         command = np.clip(sp + a, self.lower, self.upper)          # the controller's range ...
@@ -411,12 +417,8 @@ class TargetLockVectorEnv(VectorEnv):
         """As the single env's info, one array per key (and Gymnasium's ``_key`` masks): the episode's draw,
         the tick's time (s), true offset (px), motors (rad) and the raw observation that arrived this tick
         (``obs_new``; its ``obs_capture_time`` s, ``obs_offset`` px, ``obs_valid``)."""
-        cfgs = self.cfgs
-        info = {"time": self.k * self.period,
-                "preset": np.array([c.twin.preset for c in cfgs], dtype=object),
-                "latency": self.latency.copy(), "fps": self.fps.copy(),
-                "distance": np.array([c.twin.scene.distance for c in cfgs]),
-                "path": np.array([c.twin.scene.path for c in cfgs], dtype=object),
+        info = {"time": self.k * self.period, "preset": self.preset.copy(), "latency": self.latency.copy(),
+                "fps": self.fps.copy(), "distance": self.distance.copy(), "path": self.path.copy(),
                 "true_offset": self.truth.copy(), "motor": self.vec[:, 4:6].copy(),
                 "obs_new": self.last.got.copy(), "obs_capture_time": self.last.capture_time.copy(),
                 "obs_offset": self.last.offset.copy(), "obs_valid": self.last.valid.copy()}
