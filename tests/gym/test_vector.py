@@ -175,13 +175,25 @@ def test_autoreset_next_step_and_same_step():
 
 
 def test_reset_mask_resets_only_the_masked_sub_envs():
-    envs = TargetLockVectorEnv(2, SHORT)
-    envs.reset(seed=3)
+    cfg = dataclasses.replace(SHORT, loop=LoopConfig(seconds=3.0, metrics_after=0.5))
+    envs, single = TargetLockVectorEnv(2, cfg), TargetLockEnv(cfg)
+    obs, _ = envs.reset(seed=3)
+    one, _ = single.reset(seed=3)
+    a = np.full((2, 2), 0.01)
     for _ in range(5):
-        _, _, _, _, info = envs.step(np.zeros((2, 2)))
-    _, info = envs.reset(seed=[None, 9], options={"reset_mask": np.array([False, True])})
-    assert info["time"] == pytest.approx([0.12, 0.02])
-    assert info["latency"][1] == TargetLockEnv(SHORT).reset(seed=9)[1]["latency"]
+        obs, *_ = envs.step(a)
+        one, *_ = single.step(a[0])
+    # sub-env 1 anew with a 3 s latency: more frames in flight, so wider frame tables while sub-env 0 runs on
+    _, info = envs.reset(seed=[None, 9], options={"reset_mask": np.array([False, True]),
+                                                  "config": {"twin": {"camera": {"latency": 3.0, "fps": 25.0}}}})
+    assert info["time"] == pytest.approx([0.12, 0.02]) and info["latency"][1] == 3.0
+    arrived = np.zeros(2, dtype=int)
+    for _ in range(140):            # sub-env 0 is still the single env's episode (it sees its frames)
+        obs, *_, info = envs.step(a)
+        one, *_ = single.step(a[0])
+        np.testing.assert_allclose(obs[0], one, rtol=0, atol=1e-6)
+        arrived += info["obs_new"]
+    assert arrived[0] > 40 and arrived[1] == 0         # sub-env 1's first frame is still 3 s away
 
 
 def test_unsupported_features_are_refused_by_name():

@@ -46,6 +46,9 @@ from .env import MAX_AGE, env_spaces, episode_settings
 
 __all__ = ["TargetLockVectorEnv"]
 
+TICK_WINDOW = 256
+"""ticks of the target's path evaluated at once per sub-env."""
+
 SETTLE_SECONDS = 4.0
 """s: the tip is bent to the scene's start angles before t = 0, as :class:`SimulatedRig` does."""
 
@@ -137,11 +140,14 @@ class TargetLockVectorEnv(VectorEnv):
         self._autoreset = np.zeros(n, dtype=bool)
         self._started = False
         self.scenes: list[Scene | None] = [None] * n
-        self.target_tick = np.zeros((n, self.n_ticks + 2, 3))   # target (world m) at each tick time
+        # The target's path is evaluated ahead in windows (memory does not grow with the episode):
+        # TICK_WINDOW ticks from tick0, and a window of frames from f0 (captured, in flight, to come).
+        self.tick0 = np.zeros(n, dtype=np.int64)
+        self.target_tick = np.zeros((n, TICK_WINDOW, 3))       # target (world m) at tick times
+        self.f0 = np.zeros(n, dtype=np.int64)                  # frame number of the window's first column
         self.next_frame = np.zeros(n, dtype=np.int64)          # next frame to capture
         self.head = np.zeros(n, dtype=np.int64)                # next frame to arrive
-        self.frames: dict[str, np.ndarray] = {"time": np.zeros((n, 0))}
-        self._alloc_frames(1)
+        self.frames = self._frame_tables(0)
 
     # ------------------------------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
@@ -244,25 +250,22 @@ class TargetLockVectorEnv(VectorEnv):
         self.state[idx] = state
         self.setpoint_rad[idx] = state[:, 0:2]
 
-        # the scene anchored at each start pose; target positions at every tick and frame of the episode
+        # the scene anchored at each start pose, its path evaluated for the first windows
+        width = max(64, max(int(math.ceil((lat + 2 * self.period) * fps)) + 16 for lat, fps in zip(self.latency, self.fps)))
+        if width > self.frames["time"].shape[1]:     # more frames in flight than before: wider windows
+            old, self.frames = self.frames, self._frame_tables(width)
+            for key, value in old.items():
+                self.frames[key][:, :value.shape[1]] = value
+            for i in np.flatnonzero(self.k > 0):    # sub-envs in mid-episode: their windows' new columns
+                if i not in idx:
+                    self._fill_frames(i, self.head[i])
         e = self.base.twin.endoscope
-        t_ticks = np.arange(self.n_ticks + 2) * self.period
-        t_end = (self.n_ticks + 1) * self.period
-        n_frames = [int(math.floor(t_end * c.twin.camera.fps + 1e-9)) + 2 for c in cfgs]
-        self._alloc_frames(max(n_frames))
-        fr = self.frames
         for j, (i, c) in enumerate(zip(idx, cfgs)):
-            scene = Scene(c.twin.scene, c.twin.camera, tip_pose(state[j, 2], state[j, 3], e.tip_length, e.n_elements))
-            self.scenes[i] = scene
-            self.target_tick[i] = scene.target_position(t_ticks)
-            frame_t = np.arange(n_frames[j]) * (1.0 / c.twin.camera.fps)     # as the twin: index · period
-            fr["time"][i] = np.inf
-            fr["time"][i, :n_frames[j]] = frame_t
-            fr["target"][i, :n_frames[j]] = scene.target_position(frame_t)
-            fr["step"][i] = 0
-            fr["step"][i, :n_frames[j]] = np.rint(frame_t / self.dt)
-        self.next_frame[idx] = 0
-        self.head[idx] = 0
+            self.scenes[i] = Scene(c.twin.scene, c.twin.camera,
+                                   tip_pose(state[j, 2], state[j, 3], e.tip_length, e.n_elements))
+            self._fill_ticks(i, 1)
+            self.next_frame[i] = self.head[i] = self.f0[i] = 0
+            self._fill_frames(i, 0)
 
         # the loop's begin(): the agent engages at the measured motors, then the first tick
         self.setpoint[idx] = np.clip(self._motor(idx), self.lower, self.upper)
@@ -272,19 +275,31 @@ class TargetLockVectorEnv(VectorEnv):
         self.vec[idx, 6] = -1.0
         self._observe(idx)
 
-    def _alloc_frames(self, n_frames: int) -> None:
-        """Grow the per-frame tables (time, target, model step, what the tracker saw) to ``n_frames``
-        frames per sub-env; sub-envs in mid-episode keep theirs (frames are indexed by frame number)."""
-        old = self.frames
-        if old["time"].shape[1] >= n_frames:
-            return
+    def _frame_tables(self, width: int) -> dict[str, np.ndarray]:
+        """Per sub-env, ``width`` frames: capture time (s), target (world m), model step, and what the
+        tracker saw (offset px, valid, present: not dropped)."""
         n = self.num_envs
-        self.frames = {"time": np.full((n, n_frames), np.inf), "target": np.zeros((n, n_frames, 3)),
-                       "step": np.zeros((n, n_frames), dtype=np.int64), "offset": np.full((n, n_frames, 2), np.nan),
-                       "valid": np.zeros((n, n_frames), dtype=bool), "present": np.zeros((n, n_frames), dtype=bool)}
-        w = old["time"].shape[1]
-        for key, value in old.items():
-            self.frames[key][:, :w] = value
+        return {"time": np.full((n, width), np.inf), "target": np.zeros((n, width, 3)),
+                "step": np.zeros((n, width), dtype=np.int64), "offset": np.full((n, width, 2), np.nan),
+                "valid": np.zeros((n, width), dtype=bool), "present": np.zeros((n, width), dtype=bool)}
+
+    def _fill_ticks(self, i: int, k0: int) -> None:
+        """Sub-env ``i``'s target at ticks ``k0`` on (the loop's times k · period)."""
+        self.tick0[i] = k0
+        self.target_tick[i] = self.scenes[i].target_position(np.arange(k0, k0 + TICK_WINDOW) * self.period)
+
+    def _fill_frames(self, i: int, start: int) -> None:
+        """Sub-env ``i``'s frame window from frame ``start`` (all before it have arrived): the frames in flight
+        keep what the tracker saw; capture times as the twin's (index · (1 / fps)) and the target there."""
+        fr, w, shift = self.frames, self.frames["time"].shape[1], start - self.f0[i]
+        flying = self.next_frame[i] - start
+        for key in ("offset", "valid", "present"):
+            fr[key][i, :flying] = fr[key][i, shift:shift + flying].copy()
+        t = np.arange(start, start + w) * (1.0 / self.fps[i])
+        fr["time"][i] = t
+        fr["target"][i] = self.scenes[i].target_position(t)
+        fr["step"][i] = np.rint(t / self.dt)
+        self.f0[i] = start
 
     # ------------------------------------------------------------------------------------------ one tick
     def _motor(self, idx: np.ndarray) -> np.ndarray:
@@ -315,19 +330,23 @@ class TargetLockVectorEnv(VectorEnv):
         self._capture(idx, t, steps0, start, traj)
         self._arrive(idx, t)
         self.k[idx] = k
-        self.truth[idx] = self._offsets(self.state[idx, 2:4], self.target_tick[idx, k])
+        for i in idx[k - self.tick0[idx] >= TICK_WINDOW]:     # windows used up: the path's next ticks
+            self._fill_ticks(i, self.k[i])
+        self.truth[idx] = self._offsets(self.state[idx, 2:4], self.target_tick[idx, k - self.tick0[idx]])
         self._update_vector(idx, t)
 
     def _capture(self, idx, t, steps0, start, traj) -> None:
         """Frames captured during this tick: the tip at the nearest model step, the ideal tracker."""
-        fr = self.frames
+        fr, width = self.frames, self.frames["time"].shape[1]
         while True:
+            for i in idx[self.next_frame[idx] - self.f0[idx] >= width]:    # window used up: move it on
+                self._fill_frames(i, self.head[i])
             f = self.next_frame[idx]
-            tf = fr["time"][idx, f]
+            tf = fr["time"][idx, f - self.f0[idx]]
             cap = tf <= t + 1e-12
             if not cap.any():
                 return
-            ii, fi = idx[cap], f[cap]
+            ii, fi = idx[cap], f[cap] - self.f0[idx[cap]]
             j = np.clip(fr["step"][ii, fi] - steps0[cap], 0, self.n_sub)
             cols = np.flatnonzero(cap)
             phis = np.where((j == 0)[:, None], start[cols, 2:4], traj[np.maximum(j - 1, 0), cols, 2:4])
@@ -365,11 +384,12 @@ class TargetLockVectorEnv(VectorEnv):
         max_age = self.latency[idx] + self.base.loop.gate.max_extra_age
         while True:
             h = self.head[idx]
-            cap_t = fr["time"][idx, h]
+            cap_t = fr["time"][idx, h - self.f0[idx]]
             arrived = (h < self.next_frame[idx]) & (cap_t + self.latency[idx] <= t + 1e-9)
             if not arrived.any():
                 return
-            ii, s = idx[arrived], h[arrived]
+            ii = idx[arrived]
+            s = h[arrived] - self.f0[ii]
             off, valid = fr["offset"][ii, s], fr["valid"][ii, s]
             inside = ((off[:, 0] >= self.x_range[0]) & (off[:, 0] <= self.x_range[1])
                       & (off[:, 1] >= self.y_range[0]) & (off[:, 1] <= self.y_range[1]))
