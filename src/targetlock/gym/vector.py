@@ -139,7 +139,7 @@ class TargetLockVectorEnv(VectorEnv):
         self.last = _Arrival(n)
         self._autoreset = np.zeros(n, dtype=bool)
         self._started = False
-        self.scenes: list[Scene | None] = [None] * n
+        self.scenes: dict[int, Scene] = {}           # per sub-env, anchored at its episode's start pose
         # The target's path is evaluated ahead in windows (memory does not grow with the episode):
         # TICK_WINDOW ticks from tick0, and a window of frames from f0 (captured, in flight, to come).
         self.tick0 = np.zeros(n, dtype=np.int64)
@@ -258,14 +258,14 @@ class TargetLockVectorEnv(VectorEnv):
                 self.frames[key][:, :value.shape[1]] = value
             for i in np.flatnonzero(self.k > 0):    # sub-envs in mid-episode: their windows' new columns
                 if i not in idx:
-                    self._fill_frames(i, self.head[i])
+                    self._fill_frames(int(i), int(self.head[i]))
         e = self.base.twin.endoscope
         for j, (i, c) in enumerate(zip(idx, cfgs)):
-            self.scenes[i] = Scene(c.twin.scene, c.twin.camera,
+            self.scenes[int(i)] = Scene(c.twin.scene, c.twin.camera,
                                    tip_pose(state[j, 2], state[j, 3], e.tip_length, e.n_elements))
-            self._fill_ticks(i, 1)
+            self._fill_ticks(int(i), 1)
             self.next_frame[i] = self.head[i] = self.f0[i] = 0
-            self._fill_frames(i, 0)
+            self._fill_frames(int(i), 0)
 
         # the loop's begin(): the agent engages at the measured motors, then the first tick
         self.setpoint[idx] = np.clip(self._motor(idx), self.lower, self.upper)
@@ -331,7 +331,7 @@ class TargetLockVectorEnv(VectorEnv):
         self._arrive(idx, t)
         self.k[idx] = k
         for i in idx[k - self.tick0[idx] >= TICK_WINDOW]:     # windows used up: the path's next ticks
-            self._fill_ticks(i, self.k[i])
+            self._fill_ticks(int(i), int(self.k[i]))
         self.truth[idx] = self._offsets(self.state[idx, 2:4], self.target_tick[idx, k - self.tick0[idx]])
         self._update_vector(idx, t)
 
@@ -340,7 +340,7 @@ class TargetLockVectorEnv(VectorEnv):
         fr, width = self.frames, self.frames["time"].shape[1]
         while True:
             for i in idx[self.next_frame[idx] - self.f0[idx] >= width]:    # window used up: move it on
-                self._fill_frames(i, self.head[i])
+                self._fill_frames(int(i), int(self.head[i]))
             f = self.next_frame[idx]
             tf = fr["time"][idx, f - self.f0[idx]]
             cap = tf <= t + 1e-12
