@@ -261,8 +261,8 @@ class TargetLockVectorEnv(VectorEnv):
                     self._fill_frames(int(i), int(self.head[i]))
         e = self.base.twin.endoscope
         for j, (i, c) in enumerate(zip(idx, cfgs)):
-            self.scenes[int(i)] = Scene(c.twin.scene, c.twin.camera,
-                                   tip_pose(state[j, 2], state[j, 3], e.tip_length, e.n_elements))
+            start_pose = tip_pose(state[j, 2], state[j, 3], e.tip_length, e.n_elements)
+            self.scenes[int(i)] = Scene(c.twin.scene, c.twin.camera, start_pose)
             self._fill_ticks(int(i), 1)
             self.next_frame[i] = self.head[i] = self.f0[i] = 0
             self._fill_frames(int(i), 0)
