@@ -202,3 +202,16 @@ def test_unsupported_features_are_refused_by_name():
     envs = TargetLockVectorEnv(2, SHORT)
     with pytest.raises(ValueError, match="loop.rate"):
         envs.reset(seed=0, options={"config": {"loop": {"rate": 100.0}}})
+
+
+def test_gymnasiums_vector_wrappers_see_the_episodes():
+    envs = gymnasium.wrappers.vector.RecordEpisodeStatistics(
+        gymnasium.make_vec(ENV_ID, num_envs=3, config=dataclasses.replace(SHORT, loop=LoopConfig(seconds=0.2,
+                                                                                               metrics_after=0.1))))
+    envs.reset(seed=0)
+    total = np.zeros(3)
+    for _ in range(10):
+        _, reward, _, truncated, info = envs.step(np.zeros((3, 2)))
+        total += reward
+    assert truncated.all() and np.all(info["episode"]["l"] == 10)
+    np.testing.assert_allclose(info["episode"]["r"], total, rtol=1e-5)
