@@ -10,7 +10,7 @@ import numpy as np
 from .model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
 from .model.twin import TwinConfig
 
-__all__ = ["bench_model", "bench_loop", "bench_frame_to_setpoint", "bench_vision"]
+__all__ = ["bench_model", "bench_loop", "bench_frame_to_setpoint", "bench_vision", "bench_gym"]
 
 
 def _randomised(base: EndoscopeParams, rng: np.random.Generator, n: int) -> list[EndoscopeParams]:
@@ -191,3 +191,48 @@ def bench_vision(seconds: float = 20.0, seed: int = 0) -> dict:
             "tracker_fps": ev["overall"]["fps"], "eval_median_px": ev["overall"]["median_px"],
             "loop_realtime_factor": s["realtime_factor"], "loop_sim_seconds": seconds,
             "loop_rms_px": s["rms_px"], "loop_tracker_median_px": s["vision"]["tracker_median_px"], "threads": 1}
+
+
+def bench_gym(sizes: tuple[int, ...] = (1, 16, 256), env_steps: int = 4000, seed: int = 0) -> dict:
+    """Steps per second of the Gymnasium environments (randomised episodes, ideal tracker, random
+    actions within the rate limit): the single env, Gymnasium's SyncVectorEnv of N single envs and the
+    batch vector env for each N in ``sizes`` (env-steps/s = N x vector steps/s; about ``env_steps``
+    env-steps each, at least 40 vector steps, all within one episode). Resets are timed apart (``*_reset_s``: one reset of all N);
+    ``batch_*_episode_env_steps_per_s`` is derived for whole episodes of ``loop.seconds`` including
+    their reset. One core."""
+    import gymnasium
+
+    from .experiments.target_lock import RunConfig
+    from .gym import ENV_ID
+
+    def timed(env, n: int, steps: int) -> tuple[float, float]:
+        t0 = time.perf_counter()
+        env.reset(seed=seed)
+        reset = time.perf_counter() - t0
+        space = env.action_space
+        space.seed(seed)
+        actions = [space.sample() for _ in range(steps + 10)]
+        for a in actions[:10]:                 # warm caches
+            env.step(a)
+        t0 = time.perf_counter()
+        for a in actions[10:]:
+            env.step(a)
+        return steps / (time.perf_counter() - t0), reset
+
+    single = gymnasium.make(ENV_ID)
+    loop = RunConfig().loop                          # the environments' default base config
+    ticks = int(round(loop.seconds * loop.rate))    # steps per episode; timed steps stay within one
+    rate, reset = timed(single, 1, min(env_steps, ticks - 10))
+    out: dict = {"single_steps_per_s": rate, "single_reset_s": reset, "sizes": list(sizes), "threads": 1}
+    for n in sizes:
+        steps = min(max(40, env_steps // n), ticks - 10)
+        for label, mode in (("sync", "sync"), ("batch", "vector_entry_point")):
+            envs = gymnasium.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode)
+            rate, reset = timed(envs, n, steps)
+            envs.close()
+            out[f"{label}_{n}_steps_per_s"] = rate
+            out[f"{label}_{n}_env_steps_per_s"] = n * rate
+            out[f"{label}_{n}_reset_s"] = reset
+        out[f"batch_{n}_episode_env_steps_per_s"] = n * ticks / (ticks / out[f"batch_{n}_steps_per_s"]
+                                                                 + out[f"batch_{n}_reset_s"])
+    return out

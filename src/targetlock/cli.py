@@ -214,7 +214,7 @@ def _identify(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------------- bench
 def _bench_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=("model", "loop", "vision", "robustness"), help="what to measure")
+    p.add_argument("what", choices=("model", "loop", "vision", "robustness", "gym"), help="what to measure")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object on the last line")
     p.add_argument("--cases", type=int, default=60, help="robustness: number of random cases (default 60)")
     p.add_argument("--seed", type=int, default=0, help="robustness: seed of the random set (default 0)")
@@ -222,7 +222,7 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
                                                             "worker processes (default: in this process)")
 
 
-@command("bench", "benchmarks: model, loop, vision, robustness")(_bench_options)
+@command("bench", "benchmarks: model, loop, vision, robustness, gym")(_bench_options)
 def _bench(args: argparse.Namespace) -> int:
     from .experiments.common import print_json_last
     if args.what == "model":
@@ -237,6 +237,14 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.what == "robustness":
         from .experiments.robustness import bench_robustness
         res = bench_robustness(args.cases, args.seed, workers=args.workers)
+    elif args.what == "gym":
+        from .bench import bench_gym
+        res = bench_gym()
+        print(f"gym: single env {res['single_steps_per_s']:.0f} steps/s")
+        for n in res["sizes"]:
+            print(f"  N = {n:3d}: SyncVectorEnv {res[f'sync_{n}_env_steps_per_s']:8.0f} env-steps/s, batch vector env "
+                  f"{res[f'batch_{n}_env_steps_per_s']:8.0f} env-steps/s ({res[f'batch_{n}_steps_per_s']:.0f} vector steps/s; "
+                  f"reset {res[f'batch_{n}_reset_s']:.2f} s vs {res[f'sync_{n}_reset_s']:.2f} s)")
     else:
         from .bench import bench_vision
         res = bench_vision()

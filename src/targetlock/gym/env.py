@@ -21,6 +21,7 @@ learnt here meets the same plant and the same safety rules as ``targetlock run``
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -38,10 +39,16 @@ from ..loop.runner import ControlLoop
 from ..model.twin import merge, preset_overrides
 from ..rig.base import Observation
 
-__all__ = ["TargetLockEnv", "random_case", "observation_vector"]
+__all__ = ["TargetLockEnv", "random_case", "observation_vector", "episode_settings", "env_spaces"]
 
 MAX_AGE = 60.0
 """s: the observation's age is reported up to this (a target unseen for longer is simply old)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _preset_endoscope(preset: str):
+    """The endoscope of a named preset (built once: validating a config costs milliseconds)."""
+    return from_dict(RunConfig, {"twin": merge(preset_overrides(preset), {"preset": preset})}).twin.endoscope
 
 
 def random_case(rng: np.random.Generator) -> dict:
@@ -49,7 +56,7 @@ def random_case(rng: np.random.Generator) -> dict:
     pretension, stiffness ±30 %, handle gain ±15 %), latency 0.25-0.6 s, 15-25 fps, target distance
     1-15 cm with the path scaled to it, and one of the report's paths."""
     preset = str(rng.choice(["calibrated", "uncalibrated", "looped-shaft"]))
-    e = from_dict(RunConfig, {"twin": merge(preset_overrides(preset), {"preset": preset})}).twin.endoscope
+    e = _preset_endoscope(preset)
 
     def scale(v: float, rel: float) -> float:
         return float(v * rng.uniform(1.0 - rel, 1.0 + rel))
@@ -70,6 +77,35 @@ def random_case(rng: np.random.Generator) -> dict:
                       "linear_length": distance, "ellipse_size": [1.08 * distance, distance]},
         }),
     }
+
+
+def env_spaces(base: RunConfig) -> tuple[spaces.Box, spaces.Box]:
+    """The action space (handle set-point change per tick, rad, within the rate limit) and the
+    observation vector's space of an environment on ``base``."""
+    step = base.controller.max_rate / base.loop.rate
+    action = spaces.Box(-step, step, shape=(2,), dtype=np.float32)
+    cam = base.twin.camera
+    # offsets within the image (the loop's gate rejects the rest), age capped, handle within the drive range
+    lo, hi = base.twin.drive.min_angle, base.twin.drive.max_angle   # rad; randomisation keeps them
+    vec = spaces.Box(np.array([-cam.width, -cam.height, 0.0, 0.0, lo, lo], np.float32),
+                     np.array([cam.width, cam.height, 1.0, MAX_AGE, hi, hi], np.float32), dtype=np.float32)
+    return action, vec
+
+
+def episode_settings(base: RunConfig, rng: np.random.Generator, seed: int | None, options: dict | None,
+                     randomize: bool) -> dict:
+    """Nested settings of one episode (see the module doc): ``options["config"]``, else a
+    :func:`random_case` drawn from ``rng`` when randomising, else ``base``; seeded with ``seed``."""
+    options = options or {}
+    data = to_dict(base)
+    if "config" in options:
+        data = merge(data, options["config"])
+    elif options.get("randomize", randomize):
+        data = merge(data, random_case(rng))
+    # the run's own seed: the reset seed when given (so reset(seed=s) on a fixed config is
+    # `targetlock run --seed s`), else the next draw of the environment's generator
+    episode_seed = int(seed) if seed is not None else int(rng.integers(2**31))
+    return merge(data, {"seed": episode_seed, "tracker": {"seed": episode_seed}})
 
 
 def observation_vector(obs: Observation | None, motor: np.ndarray, t: float, last: np.ndarray) -> np.ndarray:
@@ -120,13 +156,8 @@ class TargetLockEnv(gym.Env):
         self.reward_scale, self.penalty = float(reward_scale_px), float(out_of_view_penalty)
         self.observation_kind, self.render_mode = observation, render_mode
         self.cfg = self.base
-        step = self.base.controller.max_rate / self.base.loop.rate
-        self.action_space = spaces.Box(-step, step, shape=(2,), dtype=np.float32)
+        self.action_space, vec = env_spaces(self.base)
         cam = self.base.twin.camera
-        # offsets within the image (the loop's gate rejects the rest), age capped, handle within the drive range
-        lo, hi = self.base.twin.drive.min_angle, self.base.twin.drive.max_angle   # rad; randomisation keeps them
-        vec = spaces.Box(np.array([-cam.width, -cam.height, 0.0, 0.0, lo, lo], np.float32),
-                         np.array([cam.width, cam.height, 1.0, MAX_AGE, hi, hi], np.float32), dtype=np.float32)
         if observation == "image":
             self.observation_space = spaces.Dict({
                 "state": vec, "image": spaces.Box(0, 255, shape=(cam.height, cam.width, 3), dtype=np.uint8)})
@@ -138,16 +169,7 @@ class TargetLockEnv(gym.Env):
     # ------------------------------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        options = options or {}
-        data = to_dict(self.base)
-        if "config" in options:
-            data = merge(data, options["config"])
-        elif options.get("randomize", self.randomize):
-            data = merge(data, random_case(self.np_random))
-        # the run's own seed: the reset seed when given (so reset(seed=s) on a fixed config is
-        # `targetlock run --seed s`), else the next draw of the environment's generator
-        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
-        data = merge(data, {"seed": episode_seed, "tracker": {"seed": episode_seed}})
+        data = episode_settings(self.base, self.np_random, seed, options, self.randomize)
         if self.observation_kind == "image" or self.render_mode == "rgb_array":
             data["vision"] = True
         self.cfg = from_dict(RunConfig, data)
