@@ -11,7 +11,8 @@ limit, a NaN action holds the handle, set-points clipped to the drive range befo
 - **frames**: each sub-env captures at its own frame rate on the model's time grid (the state at
   the model step nearest the capture time, as the twin does); the camera projection of all captures
   of a tick is one numpy call;
-- **latency line**: a table of each sub-env's captured frames; a frame arrives ``latency`` s after
+- **latency line**: a table of each sub-env's captured frames, stamped as the twin stamps them (arrival
+  minus the latency the controller assumes); a frame arrives ``latency`` s after
   capture (each sub-env its own latency) and passes the loop's plausibility gate;
 - **reward**: the true image error of all sub-envs in one projection.
 
@@ -37,6 +38,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ..config import from_dict
+from ..controllers.knowledge import resolve_knowledge
 from ..experiments.target_lock import RunConfig
 from ..model.camera import project
 from ..model.endoscope import advance, handle_for_tip, initial_state, pack_params, simulate
@@ -60,6 +62,7 @@ _SHARED = (
     ("twin.camera (other than fps, latency)", lambda c: (c.twin.camera.width, c.twin.camera.height, c.twin.camera.fx,
                                                           c.twin.camera.fy, c.twin.camera.cx, c.twin.camera.cy,
                                                           c.twin.camera.k1, c.twin.camera.k2)),
+    ("twin.camera.latency_jitter", lambda c: c.twin.camera.latency_jitter),
     ("twin.endoscope.tip_length", lambda c: c.twin.endoscope.tip_length),
     ("twin.endoscope.n_elements", lambda c: c.twin.endoscope.n_elements),
     ("tracker (other than seed)", lambda c: (c.tracker.noise_px, c.tracker.drop_probability,
@@ -131,6 +134,7 @@ class TargetLockVectorEnv(VectorEnv):
         self.setpoint_rad = np.zeros((n, 2))      # what the drives were sent (rad)
         self.setpoint = np.zeros((n, 2))          # the agent controller's set-point (rad)
         self.latency, self.fps, self.distance = np.zeros(n), np.zeros(n), np.zeros(n)   # s, 1/s, m
+        self.stamp_latency = np.zeros(n)          # s
         self.preset, self.path = np.full(n, "", dtype=object), np.full(n, "", dtype=object)
         self.k = np.zeros(n, dtype=np.int64)      # ticks observed
         self.steps = np.zeros(n, dtype=np.int64)  # actions taken this episode
@@ -233,6 +237,8 @@ class TargetLockVectorEnv(VectorEnv):
             cfgs.append(cfg)
         self.params[idx] = pack_params([c.twin.endoscope for c in cfgs], self.base.twin.drive)
         self.latency[idx] = [c.twin.camera.latency for c in cfgs]
+        # Frames are stamped as the twin (a rig) stamps them: arrival minus the latency the controller assumes.
+        self.stamp_latency[idx] = [resolve_knowledge(c.knowledge, c.twin).latency for c in cfgs]
         self.preset[idx] = [c.twin.preset for c in cfgs]
         self.path[idx] = [c.twin.scene.path for c in cfgs]
         self.distance[idx] = [c.twin.scene.distance for c in cfgs]
@@ -381,7 +387,7 @@ class TargetLockVectorEnv(VectorEnv):
         """Frames whose latency has passed by ``t``, through the loop's plausibility gate; the newest kept."""
         fr = self.frames
         self.last.reset(idx)
-        max_age = self.latency[idx] + self.base.loop.gate.max_extra_age
+        max_age = self.stamp_latency[idx] + self.base.loop.gate.max_extra_age
         while True:
             h = self.head[idx]
             cap_t = fr["time"][idx, h - self.f0[idx]]
@@ -393,8 +399,9 @@ class TargetLockVectorEnv(VectorEnv):
             off, valid = fr["offset"][ii, s], fr["valid"][ii, s]
             inside = ((off[:, 0] >= self.x_range[0]) & (off[:, 0] <= self.x_range[1])
                       & (off[:, 1] >= self.y_range[0]) & (off[:, 1] <= self.y_range[1]))
-            admit = fr["present"][ii, s] & (t[arrived] - cap_t[arrived] <= max_age[arrived]) & (~valid | inside)
-            self.last.take(ii[admit], cap_t[arrived][admit], off[admit], valid[admit])
+            stamp = cap_t[arrived] + self.latency[ii] - self.stamp_latency[ii]
+            admit = fr["present"][ii, s] & (t[arrived] - stamp <= max_age[arrived]) & (~valid | inside)
+            self.last.take(ii[admit], stamp[admit], off[admit], valid[admit])
             self.head[ii] += 1
 
     def _offsets(self, phis: np.ndarray, targets: np.ndarray) -> np.ndarray:
