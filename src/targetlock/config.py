@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
+import functools
 import types
 import typing
 from dataclasses import field, fields, is_dataclass
@@ -70,9 +71,15 @@ def _fixed_length(tp: Any) -> int | None:
     return None
 
 
+@functools.lru_cache(maxsize=None)
+def _hints(cls: type) -> dict[str, Any]:
+    """Resolved field types of a config dataclass (cached: resolving them is most of a config's cost)."""
+    return typing.get_type_hints(cls)
+
+
 def _collect(cfg: Any, prefix: str, errors: list[str], checks: bool = True) -> None:
     n_before = len(errors)
-    hints = typing.get_type_hints(type(cfg))
+    hints = _hints(type(cfg))
     for f in fields(cfg):
         value = getattr(cfg, f.name)
         name = f"{prefix}{f.name}"
@@ -146,7 +153,7 @@ def _coerce(name: str, tp: Any, value: Any, errors: list[str]) -> Any:
 
 
 def _build(cls: Any, data: dict, prefix: str, errors: list[str]) -> Any:
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     known = {f.name: f for f in fields(cls) if f.init}
     unknown = sorted(set(data) - set(known))
     if unknown:
@@ -260,7 +267,7 @@ def field_info(cls: Any, dotted: str) -> tuple[Any, dict, Any]:
     known = {f.name: f for f in fields(cls)}
     if head not in known:
         raise ConfigError(f"unknown setting {dotted!r}; known: {', '.join(sorted(known))}")
-    tp = typing.get_type_hints(cls)[head]
+    tp = _hints(cls)[head]
     if rest:
         if not is_dataclass(tp):
             raise ConfigError(f"{head} has no settings below it (got {dotted!r})")
