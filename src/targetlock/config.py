@@ -8,9 +8,9 @@ TOML file never reaches a motor. :func:`from_dict` refuses unknown keys for the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import tomllib
-import functools
 import types
 import typing
 from dataclasses import field, fields, is_dataclass
