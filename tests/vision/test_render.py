@@ -221,3 +221,29 @@ def test_render_benchmark_reports_per_frame_times():
     res = render_benchmark(3, subposes=(1, 3), texture_px=512)
     assert res["camera"] == "pinhole" and res["frames"] == 3 and set(res["ms"]) == {1, 3}
     assert all(0.0 < v["median"] <= v["p95"] for v in res["ms"].values())
+
+
+@pytest.mark.parametrize("camera", ["distorted", "pinhole"])
+def test_a_region_renders_the_same_pixels_as_the_whole_frame(mucosa_target, camera):
+    """Partial frames (for a tracker that reads only its region) equal the whole frame where drawn,
+    glints, blur, noise and motion blur included, also after other regions left their buffers."""
+    cam = endoscope_camera() if camera == "distorted" else CameraParams()
+    r = Renderer(cam, RenderSettings(specular_strength=6.0), mucosa_target, seed=5)
+    for i in range(6):
+        pose = make_pose((0.003 * math.sin(i), 0.002 * math.cos(i), 0.05 + 0.01 * i),
+                         (0.5 * math.cos(0.7 * i), 0.5 * math.sin(0.7 * i), 0.1 * i))
+        end = pose.copy()
+        end[0, 3] += 0.0004 * (i % 3)                      # still, 2 and several sub-poses
+        kw = {"target_pose_end": end} if i % 3 else {}
+        r.reseed(i)
+        full = r.render(np.eye(4), pose, **kw).image
+        x0, y0 = 60 + 61 * i, 20 + 57 * i
+        r.reseed(i)
+        part = r.render(np.eye(4), pose, region=(x0, y0, x0 + 150.5, y0 + 130), **kw).image
+        inside = np.zeros(part.shape[:2], bool)
+        inside[y0:y0 + 130, x0:x0 + 151] = True              # x1 = 150.5 covers column x0 + 150
+        drawn = inside | (part.max(axis=2) > 0)
+        assert np.array_equal(part[drawn], full[drawn])
+        assert drawn.sum() < 0.5 * (full.max(axis=2) > 0).sum()    # the rest is not rendered
+    with pytest.raises(ValueError, match="region"):
+        r.render(np.eye(4), make_pose((0, 0, 0.05)), region=(0, 0, float("nan"), 10))

@@ -276,10 +276,11 @@ _bilerp16_add = _make_bilerp16(True)
 
 
 @njit(**_JIT)
-def _light_grid(rays, spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_row):
-    """Diffuse shade on the coarse grid of unit rays ((3, ch, cw) float32), over the row ``spans``:
-    ambient + (e0 cos^3)^(1/gamma) = amb + base_pow cos^(3/gamma) (``cos_lut``), clipped to
-    ``shade_max`` and truncated to 1/128 like an 8-bit image; returns the largest cos (0 if none)."""
+def _light_grid(rays, spans, shade_spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_row):
+    """Diffuse shade on the coarse grid of unit rays ((3, ch, cw) float32), over the row
+    ``shade_spans`` (within ``spans``): ambient + (e0 cos^3)^(1/gamma) = amb + base_pow
+    cos^(3/gamma) (``cos_lut``), clipped to ``shade_max`` and truncated to 1/128 like an 8-bit
+    image; returns the largest cos over ``spans`` (0 if none)."""
     nl = cos_lut.shape[0] - 1
     n0, n1, n2 = np.float32(nrm[0]), np.float32(nrm[1]), np.float32(nrm[2])
     cmax = 0.0
@@ -293,15 +294,20 @@ def _light_grid(rays, spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_r
         cs = cs_row[:b - a]
         for i in range(b - a):
             cs[i] = -(rx[i] * n0 + ry[i] * n1 + rz[i] * n2)
-        sh = shade[j, a:b]
         for i in range(b - a):
-            c = cs[i]
+            if cs[i] > 1e-3:
+                cmax = max(cmax, cs[i])
+        sa, sb = shade_spans[j, 0], shade_spans[j, 1]
+        if sb <= sa:
+            continue
+        sh = shade[j, sa:sb]
+        for i in range(sb - sa):
+            c = cs[sa - a + i]
             if c > 1e-3:
                 t = c * nl
                 k = min(int(t), nl - 1)
                 p = cos_lut[k] + (cos_lut[k + 1] - cos_lut[k]) * (t - k)
                 sh[i] = math.floor(min(amb + base_pow * p, shade_max) * 128.0) / 128.0
-                cmax = max(cmax, c)
             else:
                 sh[i] = 0.0
     return cmax
@@ -371,8 +377,8 @@ def _texel_coords(m, k, rx, ry, fu, fv, umax, vmax):
 
 
 @njit(**_JIT)
-def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans, shade_c, q, boff, planes, hplane,
-                  inter, iota, rxs, rys, fus, fvs, acc, srow, crow, ext):
+def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans, shade_c, q, boff, planes, hplane,
+                  inter, rys, fus, fvs, acc, srow, crow, ext):
     """Image (B, G, R interleaved: ``planes`` (rows, cols, 3) uint8) and height (``hplane``
     (rows, cols) uint8) over the row ``spans``.
 
@@ -381,9 +387,10 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans
     undistorted normalised ray -> level texel) and averaged; B, G, R are multiplied by the shade,
     upsampled from ``shade_c`` (x``q``, on the field-of-view box). Output pixel (y, x) is box pixel
     (y - boff, x - boff). Rays: ``rx_map``/``ry_map`` at (y + moff, x + moff) if not empty (lens
-    distortion), else ray0[:2] + (x, y) * ray0[2:]. ``inter``: ``planes`` is (rows, cols, 4) float32
+    distortion), else (rtab[0, x + moff], rtab[1, y + moff]) (the pinhole's rays by column and
+    row: the same whatever the span, so a region renders as in the whole frame). ``inter``: ``planes`` is (rows, cols, 4) float32
     (B, G, R, height, unrounded) instead and ``hplane`` is unused.
-    ``srow``: scratch of the box width + twice the largest ``boff``; ``iota`` = 0, 1, 2, ... (float32);
+    ``srow``: scratch of the box width + twice the largest ``boff``;
     the rest are scratch rows (``fus``, ``fvs``, ``acc`` rows: 16 longer than the widest span).
     """
     n = mats.shape[0]
@@ -406,14 +413,10 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans
             rx = rx_map[y + moff, xa + moff:xb + moff]
             ry = ry_map[y + moff, xa + moff:xb + moff]
         else:
-            rx = rxs[:m]
+            rx = rtab[0, xa + moff:xb + moff]
             ry = rys[:m]
-            x0 = np.float32(ray0[0] + xa * ray0[2])
-            dx = np.float32(ray0[2])
-            yv = np.float32(ray0[1] + y * ray0[3])
-            xs = iota[:m]
+            yv = rtab[1, y + moff]
             for i in range(m):
-                rx[i] = x0 + xs[i] * dx
                 ry[i] = yv
         # shade of this row, box row upsampled and extended by edge replication
         _coarse_row(shade_c, y - boff, q, crow, ext, sbox)
@@ -1050,8 +1053,9 @@ class Renderer:
         else:                                                       # affine: computed in the kernel
             self._rx_map = self._ry_map = np.empty((0, 0), np.float32)
         self._ray0 = np.array([(x0 - cam.cx) / cam.fx, (y0 - cam.cy) / cam.fy, 1.0 / cam.fx, 1.0 / cam.fy])
-        self._ray0_ext = np.array([(x0 - mg - cam.cx) / cam.fx, (y0 - mg - cam.cy) / cam.fy,
-                                   1.0 / cam.fx, 1.0 / cam.fy])
+        n_tab = max(x1 - x0, y1 - y0) + 2 * mg + 16      # pinhole rays of box + margin columns, rows
+        self._ray_tab = np.stack([(np.arange(n_tab) + x0 - mg - cam.cx) / cam.fx,
+                                  (np.arange(n_tab) + y0 - mg - cam.cy) / cam.fy]).astype(np.float32)
         self._cam6 = np.array([cam.fx, cam.fy, cam.cx - (x0 - mg), cam.cy - (y0 - mg), cam.k1, cam.k2])
         vs, us = np.mgrid[y0:y1, x0:x1].astype(np.float64)
         # Coarse grid: cell (j, i) sits at full-res (q j + (q-1)/2), as cv2.resize(INTER_LINEAR) aligns.
@@ -1094,13 +1098,12 @@ class Renderer:
         self._bgr = np.zeros((bh, bw, 3), np.uint8)                   # shaded image (interleaved)
         self._hplane = np.zeros((bh, bw), np.uint8)                   # sampled height
         we = bw + 2 * mg
-        self._scratch = dict(rxs=np.zeros(we, f32), rys=np.zeros(we, f32), fus=np.zeros(we + 16, i32),
+        self._scratch = dict(rys=np.zeros(we, f32), fus=np.zeros(we + 16, i32),
                              fvs=np.zeros(we + 16, i32), acc=np.zeros((4, we + 16), i32),
                              srow=np.zeros(we, f32), crow=np.zeros(cw, f32), ext=np.zeros(cw + 2, f32))
         self._blur_acc = np.zeros(4 * bw, f32)
         self._shifts = np.zeros((s.max_subframes, -(-bh // self._TILE[0]), -(-bw // self._TILE[1]), 2))
         self._mid = np.zeros((bh + 2 * mg, we, 4), f32)               # mid-exposure image + margin
-        self._iota = np.arange(we + 16, dtype=f32)
         self._pspans_ext = np.zeros((bh + 2 * mg, 2), np.int64)
         self._pspans_ext[mg:mg + bh] = self._pspans + mg
         self._espans = np.zeros_like(self._pspans_ext)
@@ -1125,6 +1128,57 @@ class Renderer:
         self._zero_noise = np.zeros((1, 3 * bw), np.int8)
         g = np.linspace(0.0, 1.0, self._LUT + 1)
         self._cos_lut = g ** (3.0 / s.gamma)                        # cos^3 irradiance -> display gamma
+
+    def _region_spans(self, region: Sequence[float] | None) -> tuple[np.ndarray, ...]:
+        """Row spans (A, B, S, H, P, P on the motion-blur margin's rows and C, see :meth:`_build_maps`)
+        restricted to what the pixels of ``region`` (x0, y0, x1, y1 image px) depend on: each
+        region is the previous one's grown by the reach of the step that reads it (blur radius,
+        half resolution, Sobel), with a few pixels to spare; outside them the buffers keep stale
+        values nobody reads. None: the whole field of view."""
+        if region is None:
+            return (self._aspans, self._bspans, self._sspans, self._hspans, self._pspans, self._pspans_ext,
+                    self._cspans)
+        x0, y0, x1, y1 = (float(v) for v in region)
+        if not all(map(math.isfinite, (x0, y0, x1, y1))):
+            raise ValueError(f"region = {tuple(region)}; needs 4 finite pixel coordinates (x0, y0, x1, y1)")
+        bx, by = self._box[:2]
+        rb = (len(self._kw) - 1) // 2
+
+        def clip(spans: np.ndarray, rect: tuple[int, int, int, int], step: int) -> tuple[np.ndarray, tuple]:
+            """``spans`` inside ``rect`` (x0, y0, x1, y1; columns widened to multiples of ``step``),
+            and that rect."""
+            xa, ya, xb, yb = rect
+            xa, xb = xa // step * step, -(-xb // step) * step
+            out = np.zeros_like(spans)
+            ya, yb = max(ya, 0), min(yb, len(spans))
+            if yb > ya:
+                a = np.maximum(spans[ya:yb, 0], xa)
+                b = np.minimum(spans[ya:yb, 1], xb)
+                ok = b > a
+                out[ya:yb, 0] = np.where(ok, a, 0)
+                out[ya:yb, 1] = np.where(ok, b, 0)
+            return out, (xa, ya, xb, yb)
+
+        def grow(r: tuple, g: int, k: int = 1) -> tuple[int, int, int, int]:
+            """``r`` grown by ``g`` px, then k x smaller (outwards)."""
+            return ((r[0] - g) // k, (r[1] - g) // k, -(-(r[2] + g) // k), -(-(r[3] + g) // k))
+
+        # A: the region (whole vectors); B: + blur radius; S (half resolution): what the glints
+        # upsampled x2 and blurred at A read; H (half resolution): + 1 for the Sobel; P: all of B
+        # + blur radius and of H at full resolution.
+        A, ra = clip(self._aspans, (int(math.floor(x0)) - bx, int(math.floor(y0)) - by,
+                                    int(math.ceil(x1)) - bx, int(math.ceil(y1)) - by), 16)
+        B, rb_ = clip(self._bspans, grow(ra, rb), 16)
+        S, rs = clip(self._sspans, grow(ra, rb + 3, 2), 8)
+        H, rh = clip(self._hspans, grow(rs, 1), 8)
+        P, rp = clip(self._pspans, (min(rb_[0] - rb, 2 * rh[0]), min(rb_[1] - rb, 2 * rh[1]),
+                                   max(rb_[2] + rb, 2 * rh[2]), max(rb_[3] + rb, 2 * rh[3])), 16)
+        mg = self._MB
+        PE = np.zeros_like(self._pspans_ext)
+        PE[mg:mg + len(P)] = P + mg
+        # C (coarse grid): the shade cells P + the motion-blur margin upsample from.
+        C, _ = clip(self._cspans, grow(grow(rp, mg + self._Q, self._Q), 1), 1)
+        return A, B, S, H, P, PE, C
 
     def _build_noise(self) -> None:
         """A small bank of seeded noise images; each frame takes a random window of one of them."""
@@ -1240,7 +1294,7 @@ class Renderer:
     def render(self, camera_pose: np.ndarray, target_pose: np.ndarray, *,
                camera_pose_end: np.ndarray | None = None, target_pose_end: np.ndarray | None = None,
                light_gain: float = 1.0, occluders: Sequence[np.ndarray] = (),
-               point_m: Sequence[float] | None = None) -> Frame:
+               point_m: Sequence[float] | None = None, region: Sequence[float] | None = None) -> Frame:
         """Render one frame.
 
         ``camera_pose``, ``target_pose``: 4x4 poses in the world frame (m) at the start of the
@@ -1248,7 +1302,9 @@ class Renderer:
         light (lighting change). ``occluders``: polygons (N, 2) in image pixels drawn in front of
         the tissue (e.g. an instrument). ``point_m``: plane point (m) whose ground truth is
         reported (default: the target's ``selected_point_m``). Ground truth is taken at
-        mid-exposure.
+        mid-exposure. ``region``: (x0, y0, x1, y1) image pixels: only these (and a few more, to
+        whole vectors) are rendered, with the same values as in the whole frame; the rest stays
+        black. For a consumer that reads only part of the frame (None: the whole frame).
         """
         if not (light_gain >= 0 and math.isfinite(light_gain)):
             raise ValueError(f"light_gain = {light_gain!r}; allowed: [0, inf)")
@@ -1273,6 +1329,7 @@ class Renderer:
             truth = self.truth(cp_mid, tp_mid, point_m)
             return Frame(np.zeros((cam.height, cam.width, 3), np.uint8), truth, False, False, n_sub)
 
+        A, B, S, H, P, PE, C = self._region_spans(region)
         hom0 = self._texel_homography(rel_mid, 0)
         jac = self._centre_jacobian(hom0)
         tpp = float(np.sqrt(abs(np.linalg.det(jac))))
@@ -1310,7 +1367,7 @@ class Renderer:
         amb = s.ambient * gain if d_perp > 0 else 0.0
         spec_on = s.specular_strength > 0 and self._slope_per_grad > 0
         w_scale = s.specular_strength if spec_on else 0.0   # x e0 below: glints scale with the light once, fall off as cos/d^2
-        cmax = _light_grid(self._rays_c, self._cspans, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0, self._cos_lut,
+        cmax = _light_grid(self._rays_c, self._cspans, C, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0, self._cos_lut,
                            self._shade_c, self._cs_row)
         wmax = w_scale * e0 * cmax ** 3                                 # largest glint weight
 
@@ -1318,17 +1375,17 @@ class Renderer:
         tex, rowb, th, tw = self._padded_level(level)
         sc = self._scratch
         mg = self._MB
-        scratch = (self._iota, sc["rxs"], sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"])
+        scratch = (sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"])
         if image_blur:
-            _dilate_spans(self._pspans_ext, int(math.ceil(reach)) + 2, self._mid.shape[1], self._espans)
+            _dilate_spans(PE, int(math.ceil(reach)) + 2, self._mid.shape[1], self._espans)
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          0, self._ray0_ext, self._espans, self._shade_c, self._Q, mg, self._mid, self._hplane, True,
+                          0, self._ray_tab, self._espans, self._shade_c, self._Q, mg, self._mid, self._hplane, True,
                           *scratch)
-            _motion_blur(self._mid, mg, shifts, self._TILE[1], self._TILE[0], self._pspans, self._bgr,
+            _motion_blur(self._mid, mg, shifts, self._TILE[1], self._TILE[0], P, self._bgr,
                          self._hplane, self._blur_acc)
         else:
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          mg, self._ray0, self._pspans, self._shade_c, self._Q, 0, self._bgr, self._hplane,
+                          mg, self._ray_tab, P, self._shade_c, self._Q, 0, self._bgr, self._hplane,
                           False, *scratch)
 
         # Glints (half resolution).
@@ -1338,12 +1395,12 @@ class Renderer:
             if thresh > 0:
                 # Height gradient per image pixel -> slope along texture x, y: grad_texel = J^-T grad_px.
                 c = np.linalg.inv(jac).T * self._slope_per_grad
-                use_spec = _specular_half(self._hplane, self._hspans, self._sspans, self._rays_h, nrm, rmat[:, 0],
+                use_spec = _specular_half(self._hplane, H, S, self._rays_h, nrm, rmat[:, 0],
                                           rmat[:, 1], w_scale * e0, c.ravel(), 0.5 * s.specular_exponent, thresh,
                                           self._hmap, self._t_row, self._spec, self._lit_rng)
         if occluders:
             if use_spec:
-                _add_specular(self._bgr, self._spec, self._bspans, self._hv, self._srow_f)
+                _add_specular(self._bgr, self._spec, B, self._hv, self._srow_f)
                 use_spec = False
             self._draw_occluders(self._bgr, occluders, gain)
 
@@ -1355,7 +1412,7 @@ class Renderer:
             noise, oy, ox = self._zero_noise, 0, 0
         out = np.zeros((cam.height, cam.width, 3), np.uint8)
         x0, y0 = self._box[:2]
-        _finish(self._bgr, self._spec, self._lit_rng, use_spec, self._kw, self._aspans, self._alpha3, noise, oy, ox,
+        _finish(self._bgr, self._spec, self._lit_rng, use_spec, self._kw, A, self._alpha3, noise, oy, ox,
                 bool(self._noise), out, y0, x0, self._sring, self._tags, self._srng, self._colpad, self._hacc,
                 self._srow_f, self._hv)
 
