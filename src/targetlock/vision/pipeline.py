@@ -48,7 +48,8 @@ class VisionPipeline:
         size = (0.4, 0.4)
         self.target = (PlanarTarget.aruco(seed=seed, size_m=size, marker_fraction=0.06, texture_px=4096)
                        if tracker == "marker" else PlanarTarget.mucosa(size_m=size, seed=seed, texture_px=4096))
-        self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed)
+        self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed,
+                                 surface=twin.scene.surface)
         self.tracker = make_tracker(tracker, camera=self.cam)
         self.window_px = window_px
         self.exposure = exposure_fraction / self.cam.fps   # s, the shutter is open this long before capture
@@ -81,7 +82,7 @@ class VisionPipeline:
         self.prev = (t, cam_pose, target_pose)
         t0 = time.perf_counter()
         frame = self.renderer.render(start_cam, start_target, camera_pose_end=cam_pose, target_pose_end=target_pose,
-                                     region=self._region())
+                                     region=self._region(), time_s=t - 0.5 * min(self.exposure, t))
         t1 = time.perf_counter()
         if not self.selected:
             self.selected = True

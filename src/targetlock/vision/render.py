@@ -46,6 +46,7 @@ from numba.extending import intrinsic
 
 from ..config import param, validate
 from ..model.camera import CameraParams, project, world_to_camera
+from ..model.scene import SurfaceParams
 from .texture import aruco_texture, mucosa_texture, with_height
 
 __all__ = ["RenderSettings", "PlanarTarget", "Frame", "Renderer", "make_pose", "interpolate_pose",
@@ -377,8 +378,20 @@ def _texel_coords(m, k, rx, ry, fu, fv, umax, vmax):
 
 
 @njit(**_JIT)
+def _grid_coords(gu, gv, fu, fv, umax, vmax):
+    """Texel coordinates as :func:`_texel_coords` gives them, from level texel coordinates
+    (``gu``, ``gv``, float32) interpolated from a surface's coarse grid."""
+    lo = np.float32(-_PAD * _FIX)
+    for i in range(fu.shape[0]):
+        u = min(max(gu[i] * np.float32(_FIX), lo), umax)
+        v = min(max(gv[i] * np.float32(_FIX), lo), vmax)
+        fu[i] = np.int32(u + np.float32(_PAD * _FIX + 0.5))
+        fv[i] = np.int32(v + np.float32(_PAD * _FIX + 0.5))
+
+
+@njit(**_JIT)
 def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans, shade_c, q, boff, planes, hplane,
-                  inter, rys, fus, fvs, acc, srow, crow, ext):
+                  inter, rys, fus, fvs, acc, srow, crow, ext, grids, grow):
     """Image (B, G, R interleaved: ``planes`` (rows, cols, 3) uint8) and height (``hplane``
     (rows, cols) uint8) over the row ``spans``.
 
@@ -392,8 +405,12 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans
     (B, G, R, height, unrounded) instead and ``hplane`` is unused.
     ``srow``: scratch of the box width + twice the largest ``boff``;
     the rest are scratch rows (``fus``, ``fvs``, ``acc`` rows: 16 longer than the widest span).
+    ``grids`` (n, 2, rows / q, cols / q) float32, if not empty (a surface that is not a plane;
+    only with ``boff`` = 0): level texel coordinates on the coarse grid at each sub-pose, upsampled
+    x``q`` instead of the homographies ``mats``; ``grow``: (2, cols) float32 scratch.
     """
-    n = mats.shape[0]
+    have_grid = grids.shape[0] > 0
+    n = grids.shape[0] if have_grid else mats.shape[0]
     have_map = rx_map.shape[0] > 0
     inv_n = np.float32(1.0 / (_FIX * _FIX * n))
     half = np.float32(0.5)
@@ -430,7 +447,12 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans
         fv = fvs[:m]
         m16 = (m + 15) // 16 * 16
         for k in range(n):
-            _texel_coords(mats, k, rx, ry, fu, fv, umax, vmax)
+            if have_grid:
+                _coarse_row(grids[k, 0], y, q, crow, ext, grow[0])
+                _coarse_row(grids[k, 1], y, q, crow, ext, grow[1])
+                _grid_coords(grow[0, xa:xb], grow[1, xa:xb], fu, fv, umax, vmax)
+            else:
+                _texel_coords(mats, k, rx, ry, fu, fv, umax, vmax)
             for i in range(m, m16):                 # the gathers' tail lanes: texel (0, 0)
                 fus[i] = 0
                 fvs[i] = 0
@@ -592,7 +614,7 @@ def _dilate_spans(spans, r, width, out):
 
 @njit(**_JIT)
 def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, half_k, thresh, hmap, t_row, spec,
-                   lit_rng):
+                   lit_rng, sgrid, srows, crow, ext):
     """Glints at half resolution into ``spec`` (uint8) over ``sspans``; returns whether any is lit.
 
     Lobe exp(-k/2 |a - g|^2) times the glint weight w_scale cos^3 (cos = -ray . nrm) times the
@@ -602,7 +624,11 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
     ``hmap``: (h2 + 2, w2 + 2) float32 scratch (averaged height, reflected 1-pixel border).
     Pixels with k/2 |a - g|^2 >= ``thresh`` round to 0 and skip the exponential. ``lit_rng`` (h2, 2):
     per row, the columns [first, last + 1) with a glint ((0, 0) if none).
+    ``sgrid`` (3, h2 / 2, w2 / 2) float32, if not empty (a surface that is not a plane): on the
+    coarse grid, the surface's own slope along the texture axes (added to the bump slope) and the
+    glint weight (instead of w_scale cos^3), upsampled x2 (``srows`` (3, w2), ``crow``, ``ext``: scratch).
     """
+    have_grid = sgrid.shape[0] > 0
     h2, w2 = spec.shape
     for i in range(h2):
         ja, jb = hspans[i, 0], hspans[i, 1]
@@ -647,14 +673,28 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
         q2 = hmap[i + 2, ja:jb + 2]
         tt = t_row[:m]
         cand = 0
-        for t in range(m):
-            gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])   # Sobel x 16
-            gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
-            d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2)
-            d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2)
-            x = hk * (d1 * d1 + d2 * d2)
-            tt[t] = x
-            cand += np.int32(x < th)
+        if have_grid:
+            for c in range(3):
+                _coarse_row(sgrid[c], i, 2, crow, ext, srows[c])
+            ax = srows[0, ja:jb]
+            ay = srows[1, ja:jb]
+            for t in range(m):
+                gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])
+                gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
+                d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2) + ax[t]
+                d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2) + ay[t]
+                x = hk * (d1 * d1 + d2 * d2)
+                tt[t] = x
+                cand += np.int32(x < th)
+        else:
+            for t in range(m):
+                gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])   # Sobel x 16
+                gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
+                d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2)
+                d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2)
+                x = hk * (d1 * d1 + d2 * d2)
+                tt[t] = x
+                cand += np.int32(x < th)
         sp = spec[i, ja:jb]
         for t in range(m):
             sp[t] = 0
@@ -666,9 +706,16 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
         last = -1
         for t in range(m):
             if tt[t] < th:
-                cs = -(rx[t] * n0 + ry[t] * n1 + rz[t] * n2)
-                if cs > 1e-3:
-                    v = math.exp(-tt[t]) * w_scale * cs * cs * cs * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                v = 0.0
+                if have_grid:
+                    wt = srows[2, ja + t]
+                    if wt > 0:
+                        v = math.exp(-tt[t]) * wt * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                else:
+                    cs = -(rx[t] * n0 + ry[t] * n1 + rz[t] * n2)
+                    if cs > 1e-3:
+                        v = math.exp(-tt[t]) * w_scale * cs * cs * cs * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                if v > 0:
                     iv = min(int(v), 255)
                     sp[t] = iv
                     if iv > 0:
@@ -939,6 +986,95 @@ def _subpose_homs(cp0, cp1, tp0, tp1, fractions, tex0, out):
     return True
 
 
+@njit(**_JIT)
+def _surface_grid(rays, spans, rot, org, lut_w, lut_d, r_step, lx, ly, aff, out, shade, sgrid, e_ref, amb, inv_gamma,
+                  shade_max, w_glint):
+    """Intersect the unit rays of the coarse grid (``rays`` (3, ch, cw), camera frame) over the
+    row ``spans`` with the surface z = w(x, y) of the target frame, w a radial profile around
+    (lx, ly) tabulated at r = k ``r_step`` (``lut_w``, ``lut_d`` = dw/dr; m), by Newton's method
+    along each ray (bracketed: it always converges), started from the neighbour's solution; ``rot``: camera ->
+    target rotation, ``org``: the camera in the target frame (m). ``out`` (2, ch, cw): level texel
+    coordinates u = aff[0] x + aff[1], v = aff[2] y + aff[3] (-1e9, the border, where the ray
+    misses). If ``shade`` has rows, also the diffuse shade there (as :func:`_light_grid`: ambient +
+    (e_ref cos / distance^2)^(1/gamma), cos between ray and surface normal) and ``sgrid`` (3, ch,
+    cw): the surface slope along the texture axes (sign: as the view tilt in :func:`_specular_half`)
+    and the glint weight ``w_glint`` x irradiance. Returns the largest glint weight."""
+    nl = lut_w.shape[0] - 1
+    inv_step = 1.0 / r_step
+    with_shade = shade.shape[0] > 0
+    sigma = 1.0 if org[2] < 0 else -1.0                  # the camera on the plane's -z side: normal -z
+    w_far = lut_w.max() + 1e-3 if sigma > 0 else lut_w.min() - 1e-3
+    wmax = 0.0
+    for j in range(out.shape[1]):
+        s_prev = -1.0
+        for i in range(spans[j, 0], spans[j, 1]):
+            rx, ry, rz = rays[0, j, i], rays[1, j, i], rays[2, j, i]
+            dx = rot[0, 0] * rx + rot[0, 1] * ry + rot[0, 2] * rz
+            dy = rot[1, 0] * rx + rot[1, 1] * ry + rot[1, 2] * rz
+            dz = rot[2, 0] * rx + rot[2, 1] * ry + rot[2, 2] * rz
+            # G(s) = sigma (z - w) along the ray: < 0 at the camera, > 0 past the deepest surface
+            # point (w_far); Newton's method, kept inside that bracket by bisection.
+            ok = False
+            x = y = r = dw = 0.0
+            if sigma * dz > 1e-9:
+                lo = 0.0
+                hi = (w_far - org[2]) / dz
+                s = s_prev if lo < s_prev < hi else min(max(-org[2] / dz, 0.0), hi)   # neighbour / plane
+                for _ in range(60):
+                    x = org[0] + s * dx - lx
+                    y = org[1] + s * dy - ly
+                    r = math.sqrt(x * x + y * y)
+                    tk = min(r * inv_step, nl - 1e-6)
+                    k = int(tk)
+                    f = tk - k
+                    w = lut_w[k] + (lut_w[k + 1] - lut_w[k]) * f
+                    dw = lut_d[k] + (lut_d[k + 1] - lut_d[k]) * f
+                    g = sigma * (org[2] + s * dz - w)
+                    gp = sigma * (dz - dw * (x * dx + y * dy) / max(r, 1e-12))
+                    if g < 0.0:
+                        lo = s
+                    else:
+                        hi = s
+                    sn = s - g / gp if gp > 0.0 else lo - 1.0
+                    if not lo < sn < hi:
+                        sn = 0.5 * (lo + hi)
+                    done = abs(sn - s) < 1e-7 or hi - lo < 1e-7
+                    s = sn
+                    if done:
+                        ok = True
+                        break
+            if not ok:
+                out[0, j, i] = -1e9
+                out[1, j, i] = -1e9
+                s_prev = -1.0
+                if with_shade:
+                    shade[j, i] = 0.0
+                    sgrid[0, j, i] = 0.0
+                    sgrid[1, j, i] = 0.0
+                    sgrid[2, j, i] = 0.0
+                continue
+            s_prev = s
+            out[0, j, i] = aff[0] * (org[0] + s * dx) + aff[1]
+            out[1, j, i] = aff[2] * (org[1] + s * dy) + aff[3]
+            if with_shade:
+                rr = max(r, 1e-12)
+                wx = dw * x / rr
+                wy = dw * y / rr
+                cs = sigma * (dz - dx * wx - dy * wy) / math.sqrt(1.0 + wx * wx + wy * wy)
+                wgt = 0.0
+                if cs > 1e-3:
+                    e = e_ref * cs / (s * s)
+                    shade[j, i] = math.floor(min(amb + e ** inv_gamma, shade_max) * 128.0) / 128.0
+                    wgt = w_glint * e
+                else:
+                    shade[j, i] = 0.0
+                sgrid[0, j, i] = sigma * wx
+                sgrid[1, j, i] = sigma * wy
+                sgrid[2, j, i] = wgt
+                wmax = max(wmax, wgt)
+    return wmax
+
+
 def _spans(mask: np.ndarray) -> np.ndarray:
     """Per row: [first, last + 1) of the set pixels of a row-convex ``mask`` ((0, 0) for empty rows)."""
     out = np.zeros((mask.shape[0], 2), np.int64)
@@ -980,7 +1116,9 @@ class Renderer:
 
     ``cam``: intrinsics and distortion (use :func:`endoscope_camera` for the usual distorted
     camera); ``settings``: :class:`RenderSettings`; ``target``: the textured plane (default:
-    procedural mucosa from ``seed``, 0.2 m x 0.2 m); ``seed``: sensor noise (and default texture).
+    procedural mucosa from ``seed``, 0.2 m x 0.2 m); ``seed``: sensor noise (and default texture);
+    ``surface``: the tissue's shape (default the plane; ``kind = "folds"``: the texture lies on a
+    lumen with folds that deforms with ``render(time_s=)``, see :class:`SurfaceParams`).
 
     A renderer owns preallocated work buffers: use one renderer per thread.
     """
@@ -992,9 +1130,10 @@ class Renderer:
     _LUT = 4096  # entries of the cos^(3/gamma) table
 
     def __init__(self, cam: CameraParams, settings: RenderSettings | None = None,
-                 target: PlanarTarget | None = None, *, seed: int = 0) -> None:
+                 target: PlanarTarget | None = None, *, seed: int = 0, surface: SurfaceParams | None = None) -> None:
         self.cam = validate(cam)
         self.settings = validate(settings or RenderSettings())
+        self.surface = validate(surface or SurfaceParams())
         self._rng = np.random.default_rng(seed)
         self._build_maps()
         self._build_noise()
@@ -1128,6 +1267,16 @@ class Renderer:
         self._zero_noise = np.zeros((1, 3 * bw), np.int8)
         g = np.linspace(0.0, 1.0, self._LUT + 1)
         self._cos_lut = g ** (3.0 / s.gamma)                        # cos^3 irradiance -> display gamma
+        # Surfaces that are not planes: texel coordinates per sub-pose, glint slopes and weights on
+        # the coarse grid (allocated here, small); the empty ones stand for "none" in the kernels.
+        self._grids = np.zeros((s.max_subframes, 2, ch, cw), f32)
+        self._grid_mid = np.zeros((2, ch, cw), f32)
+        self._sgrid = np.zeros((3, ch, cw), f32)
+        self._srows = np.zeros((3, w2), f32)
+        self._scratch["grow"] = np.zeros((2, bw), f32)
+        self._no_grids = np.zeros((0, 2, 1, 1), f32)
+        self._no_sgrid = np.zeros((0, 1, 1), f32)
+        self._no_shade = np.zeros((0, 1), f32)
 
     def _region_spans(self, region: Sequence[float] | None) -> tuple[np.ndarray, ...]:
         """Row spans (A, B, S, H, P, P on the motion-blur margin's rows and C, see :meth:`_build_maps`)
@@ -1205,6 +1354,12 @@ class Renderer:
                 levels.append(cv2.pyrDown(levels[-1]))
         self.target = target
         self._levels = levels
+        # A surface's radial profile is tabulated out to the farthest texture corner (+ 5 cm).
+        off = self.surface.lumen_offset
+        r_max = math.hypot(target.size_m[0] / 2 + abs(off[0]), target.size_m[1] / 2 + abs(off[1])) + 0.05
+        self._lut_r = np.linspace(0.0, r_max, self._LUT_R + 1)
+        self._lut_step = r_max / self._LUT_R
+        self._lut_key: tuple | None = None
         self._padded: dict[int, tuple] = {}                          # built on first use
         h = tex[..., 3].astype(np.float32)
         gx = cv2.Sobel(h, cv2.CV_32F, 1, 0, ksize=3) / 8.0
@@ -1242,10 +1397,12 @@ class Renderer:
         return np.array([[k * w / sw, 0.0, k * (w / 2 - 0.5)], [0.0, k * h / sh, k * (h / 2 - 0.5)], [0.0, 0.0, 1.0]])
 
     def truth(self, camera_pose: np.ndarray, target_pose: np.ndarray,
-              point_m: Sequence[float] | None = None) -> np.ndarray:
-        """Pixel position (x, y; with distortion) of a plane point (default: the selected point)."""
+              point_m: Sequence[float] | None = None, time_s: float = 0.0) -> np.ndarray:
+        """Pixel position (x, y; with distortion) of a plane point (default: the selected point), on
+        the surface as it is at ``time_s`` (s)."""
         p = self.target.selected_point_m if point_m is None else point_m
-        world = np.asarray(target_pose, float) @ np.array([p[0], p[1], 0.0, 1.0])
+        w = 0.0 if self.surface.flat else float(self.surface.height(p[0], p[1], time_s))
+        world = np.asarray(target_pose, float) @ np.array([p[0], p[1], w, 1.0])
         return project(world_to_camera(np.asarray(camera_pose, float), world[:3]), self.cam)
 
     def _texel_homography(self, rel: np.ndarray, level: int) -> np.ndarray:
@@ -1266,6 +1423,24 @@ class Renderer:
             rel = self._plane_in_camera(interpolate_pose(cp0, cp1, fk), interpolate_pose(tp0, tp1, fk))
             out[k] = self._texel_homography(rel, 0)
         return out
+
+    _LUT_R = 4096  # entries of a surface's radial profile table
+
+    def _surface_args(self, rel: np.ndarray, time_s: float, level: int, spans: np.ndarray) -> tuple:
+        """The first arguments of :func:`_surface_grid` for the target seen at ``rel`` (target in
+        camera, 4x4) at scene time ``time_s``, in level-``level`` texels, over the coarse ``spans``."""
+        surf = self.surface
+        key = float(time_s)
+        if self._lut_key != key:                  # the profile at this time (shared by the sub-poses)
+            w, d = surf.profile(self._lut_r, time_s)
+            self._lut = (np.ascontiguousarray(w), np.ascontiguousarray(d))
+            self._lut_key = key
+        tex = self._texel_from_plane(level)
+        aff = np.array([tex[0, 0], tex[0, 2], tex[1, 1], tex[1, 2]])
+        rot = np.ascontiguousarray(rel[:3, :3].T)
+        org = -rot @ rel[:3, 3]
+        return (self._rays_c, spans, rot, org, self._lut[0], self._lut[1], self._lut_step,
+                float(surf.lumen_offset[0]), float(surf.lumen_offset[1]), aff)
 
     def _centre_jacobian(self, hom0: np.ndarray) -> np.ndarray:
         """2x2 d(level-0 texel) / d(pixel) at the image centre (one-pixel differences) from the
@@ -1294,7 +1469,8 @@ class Renderer:
     def render(self, camera_pose: np.ndarray, target_pose: np.ndarray, *,
                camera_pose_end: np.ndarray | None = None, target_pose_end: np.ndarray | None = None,
                light_gain: float = 1.0, occluders: Sequence[np.ndarray] = (),
-               point_m: Sequence[float] | None = None, region: Sequence[float] | None = None) -> Frame:
+               point_m: Sequence[float] | None = None, region: Sequence[float] | None = None,
+               time_s: float = 0.0) -> Frame:
         """Render one frame.
 
         ``camera_pose``, ``target_pose``: 4x4 poses in the world frame (m) at the start of the
@@ -1305,9 +1481,14 @@ class Renderer:
         mid-exposure. ``region``: (x0, y0, x1, y1) image pixels: only these (and a few more, to
         whole vectors) are rendered, with the same values as in the whole frame; the rest stays
         black. For a consumer that reads only part of the frame (None: the whole frame).
+        ``time_s``: the scene time (s) at mid-exposure, which shapes a deforming surface (its shape
+        is held over the exposure: it moves < 0.1 mm in one); the plane ignores it.
         """
         if not (light_gain >= 0 and math.isfinite(light_gain)):
             raise ValueError(f"light_gain = {light_gain!r}; allowed: [0, inf)")
+        if not math.isfinite(time_s):
+            raise ValueError(f"time_s = {time_s!r}; must be a finite time (s)")
+        folded = not self.surface.flat
         s, cam = self.settings, self.cam
         cp0 = np.asarray(camera_pose, float)
         tp0 = np.asarray(target_pose, float)
@@ -1326,7 +1507,7 @@ class Renderer:
         if abs(float(rel_mid[:3, 2] @ rel_mid[:3, 3])) < 1e-6 or (moving and abs(float(rel1[:3, 2] @ rel1[:3, 3])) < 1e-6) \
                 or abs(float(rel0[:3, 2] @ rel0[:3, 3])) < 1e-6:
             # The camera lies in the target plane: nothing sensible to see (black frame).
-            truth = self.truth(cp_mid, tp_mid, point_m)
+            truth = self.truth(cp_mid, tp_mid, point_m, time_s)
             return Frame(np.zeros((cam.height, cam.width, 3), np.uint8), truth, False, False, n_sub)
 
         A, B, S, H, P, PE, C = self._region_spans(region)
@@ -1345,7 +1526,7 @@ class Renderer:
         mid_hom = lscale @ hom0
         mats = mid_hom.astype(np.float32).reshape(1, 9)
         image_blur = False
-        if n_sub > 1:
+        if n_sub > 1 and not folded:     # (a surface is sampled at each sub-pose: _surface_grids)
             inv_mid = np.linalg.inv(mid_hom)
             reach = math.inf
             homs = lscale @ self._subpose_homographies(cp0, cp1, tp0, tp1, (np.arange(n_sub) + 0.5) / n_sub)
@@ -1367,15 +1548,27 @@ class Renderer:
         amb = s.ambient * gain if d_perp > 0 else 0.0
         spec_on = s.specular_strength > 0 and self._slope_per_grad > 0
         w_scale = s.specular_strength if spec_on else 0.0   # x e0 below: glints scale with the light once, fall off as cos/d^2
-        cmax = _light_grid(self._rays_c, self._cspans, C, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0, self._cos_lut,
-                           self._shade_c, self._cs_row)
-        wmax = w_scale * e0 * cmax ** 3                                 # largest glint weight
+        if folded:   # texels, shade and glint grids at mid-exposure; texels at each sub-pose if blurred
+            grids, sgrid = self._grids[:n_sub], self._sgrid
+            wmax = _surface_grid(*self._surface_args(rel_mid, time_s, level, C),
+                                 grids[0] if n_sub == 1 else self._grid_mid, self._shade_c, sgrid,
+                                 gain * s.light_ref_distance_m ** 2, s.ambient * gain, 1.0 / s.gamma, 255.0 / 128.0,
+                                 w_scale)
+            for k, f in enumerate((np.arange(n_sub) + 0.5) / n_sub if n_sub > 1 else ()):
+                rel = self._plane_in_camera(interpolate_pose(cp0, cp1, f), interpolate_pose(tp0, tp1, f))
+                _surface_grid(*self._surface_args(rel, time_s, level, C), grids[k], self._no_shade, self._no_sgrid,
+                              0.0, 0.0, 1.0, 1.0, 0.0)
+        else:
+            grids, sgrid = self._no_grids, self._no_sgrid
+            cmax = _light_grid(self._rays_c, self._cspans, C, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0,
+                               self._cos_lut, self._shade_c, self._cs_row)
+            wmax = w_scale * e0 * cmax ** 3                             # largest glint weight
 
         # Texture sampling x shade -> planes B, G, R, height.
         tex, rowb, th, tw = self._padded_level(level)
         sc = self._scratch
         mg = self._MB
-        scratch = (sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"])
+        scratch = (sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"], grids, sc["grow"])
         if image_blur:
             _dilate_spans(PE, int(math.ceil(reach)) + 2, self._mid.shape[1], self._espans)
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
@@ -1397,7 +1590,8 @@ class Renderer:
                 c = np.linalg.inv(jac).T * self._slope_per_grad
                 use_spec = _specular_half(self._hplane, H, S, self._rays_h, nrm, rmat[:, 0],
                                           rmat[:, 1], w_scale * e0, c.ravel(), 0.5 * s.specular_exponent, thresh,
-                                          self._hmap, self._t_row, self._spec, self._lit_rng)
+                                          self._hmap, self._t_row, self._spec, self._lit_rng, sgrid, self._srows,
+                                          sc["crow"], sc["ext"])
         if occluders:
             if use_spec:
                 _add_specular(self._bgr, self._spec, B, self._hv, self._srow_f)
@@ -1416,7 +1610,7 @@ class Renderer:
                 bool(self._noise), out, y0, x0, self._sring, self._tags, self._srng, self._colpad, self._hacc,
                 self._srow_f, self._hv)
 
-        truth = self.truth(cp_mid, tp_mid, point_m)
+        truth = self.truth(cp_mid, tp_mid, point_m, time_s)
         occluded = bool(np.all(np.isfinite(truth)) and any(
             cv2.pointPolygonTest(np.asarray(p, np.float32).reshape(-1, 1, 2), (float(truth[0]), float(truth[1])), False) >= 0
             for p in occluders))
