@@ -390,8 +390,8 @@ def _grid_coords(gu, gv, fu, fv, umax, vmax):
 
 
 @njit(**_JIT)
-def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans, shade_c, q, boff, planes, hplane,
-                  inter, rys, fus, fvs, acc, srow, crow, ext, grids, grow):
+def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans, ospans, shade_c, q, boff, planes,
+                  hplane, inter, iota, rxs, rys, fus, fvs, acc, srow, crow, ext, grids, grow):
     """Image (B, G, R interleaved: ``planes`` (rows, cols, 3) uint8) and height (``hplane``
     (rows, cols) uint8) over the row ``spans``.
 
@@ -400,10 +400,11 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans
     undistorted normalised ray -> level texel) and averaged; B, G, R are multiplied by the shade,
     upsampled from ``shade_c`` (x``q``, on the field-of-view box). Output pixel (y, x) is box pixel
     (y - boff, x - boff). Rays: ``rx_map``/``ry_map`` at (y + moff, x + moff) if not empty (lens
-    distortion), else (rtab[0, x + moff], rtab[1, y + moff]) (the pinhole's rays by column and
-    row: the same whatever the span, so a region renders as in the whole frame). ``inter``: ``planes`` is (rows, cols, 4) float32
+    distortion), else ray0[:2] + (x, y) * ray0[2:], in float32 from the start of the row's span in
+    ``ospans`` (the whole frame's spans, which contain ``spans``: a region renders as in the whole
+    frame). ``inter``: ``planes`` is (rows, cols, 4) float32
     (B, G, R, height, unrounded) instead and ``hplane`` is unused.
-    ``srow``: scratch of the box width + twice the largest ``boff``;
+    ``srow``: scratch of the box width + twice the largest ``boff``; ``iota`` = 0, 1, 2, ... (float32);
     the rest are scratch rows (``fus``, ``fvs``, ``acc`` rows: 16 longer than the widest span).
     ``grids`` (n, 2, rows / q, cols / q) float32, if not empty (a surface that is not a plane;
     only with ``boff`` = 0): level texel coordinates on the coarse grid at each sub-pose, upsampled
@@ -430,10 +431,15 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, rtab, spans
             rx = rx_map[y + moff, xa + moff:xb + moff]
             ry = ry_map[y + moff, xa + moff:xb + moff]
         else:
-            rx = rtab[0, xa + moff:xb + moff]
+            rx = rxs[:m]
             ry = rys[:m]
-            yv = rtab[1, y + moff]
+            oa = ospans[y, 0]
+            x0 = np.float32(ray0[0] + oa * ray0[2])
+            dx = np.float32(ray0[2])
+            yv = np.float32(ray0[1] + y * ray0[3])
+            xs = iota[xa - oa:xb - oa]
             for i in range(m):
+                rx[i] = x0 + xs[i] * dx
                 ry[i] = yv
         # shade of this row, box row upsampled and extended by edge replication
         _coarse_row(shade_c, y - boff, q, crow, ext, sbox)
@@ -1192,9 +1198,8 @@ class Renderer:
         else:                                                       # affine: computed in the kernel
             self._rx_map = self._ry_map = np.empty((0, 0), np.float32)
         self._ray0 = np.array([(x0 - cam.cx) / cam.fx, (y0 - cam.cy) / cam.fy, 1.0 / cam.fx, 1.0 / cam.fy])
-        n_tab = max(x1 - x0, y1 - y0) + 2 * mg + 16      # pinhole rays of box + margin columns, rows
-        self._ray_tab = np.stack([(np.arange(n_tab) + x0 - mg - cam.cx) / cam.fx,
-                                  (np.arange(n_tab) + y0 - mg - cam.cy) / cam.fy]).astype(np.float32)
+        self._ray0_ext = np.array([(x0 - mg - cam.cx) / cam.fx, (y0 - mg - cam.cy) / cam.fy,
+                                   1.0 / cam.fx, 1.0 / cam.fy])
         self._cam6 = np.array([cam.fx, cam.fy, cam.cx - (x0 - mg), cam.cy - (y0 - mg), cam.k1, cam.k2])
         vs, us = np.mgrid[y0:y1, x0:x1].astype(np.float64)
         # Coarse grid: cell (j, i) sits at full-res (q j + (q-1)/2), as cv2.resize(INTER_LINEAR) aligns.
@@ -1237,7 +1242,7 @@ class Renderer:
         self._bgr = np.zeros((bh, bw, 3), np.uint8)                   # shaded image (interleaved)
         self._hplane = np.zeros((bh, bw), np.uint8)                   # sampled height
         we = bw + 2 * mg
-        self._scratch = dict(rys=np.zeros(we, f32), fus=np.zeros(we + 16, i32),
+        self._scratch = dict(rxs=np.zeros(we, f32), rys=np.zeros(we, f32), fus=np.zeros(we + 16, i32),
                              fvs=np.zeros(we + 16, i32), acc=np.zeros((4, we + 16), i32),
                              srow=np.zeros(we, f32), crow=np.zeros(cw, f32), ext=np.zeros(cw + 2, f32))
         self._blur_acc = np.zeros(4 * bw, f32)
@@ -1246,6 +1251,8 @@ class Renderer:
         self._pspans_ext = np.zeros((bh + 2 * mg, 2), np.int64)
         self._pspans_ext[mg:mg + bh] = self._pspans + mg
         self._espans = np.zeros_like(self._pspans_ext)
+        self._espans_full = np.zeros_like(self._pspans_ext)
+        self._iota = np.arange(we + 16, dtype=f32)
         self._shade_c = np.zeros((ch, cw), f32)
         self._cs_row = np.zeros(cw, f32)
         # coarse cells the upsampled shade of P reads (+1 cell)
@@ -1568,17 +1575,23 @@ class Renderer:
         tex, rowb, th, tw = self._padded_level(level)
         sc = self._scratch
         mg = self._MB
-        scratch = (sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"], grids, sc["grow"])
+        scratch = (self._iota, sc["rxs"], sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"],
+                   grids, sc["grow"])
         if image_blur:
-            _dilate_spans(PE, int(math.ceil(reach)) + 2, self._mid.shape[1], self._espans)
+            r_ext = int(math.ceil(reach)) + 2
+            _dilate_spans(PE, r_ext, self._mid.shape[1], self._espans)
+            full = self._espans
+            if region is not None:                  # rays computed as in the whole frame
+                full = self._espans_full
+                _dilate_spans(self._pspans_ext, r_ext, self._mid.shape[1], full)
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          0, self._ray_tab, self._espans, self._shade_c, self._Q, mg, self._mid, self._hplane, True,
-                          *scratch)
+                          0, self._ray0_ext, self._espans, full, self._shade_c, self._Q, mg, self._mid, self._hplane,
+                          True, *scratch)
             _motion_blur(self._mid, mg, shifts, self._TILE[1], self._TILE[0], P, self._bgr,
                          self._hplane, self._blur_acc)
         else:
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          mg, self._ray_tab, P, self._shade_c, self._Q, 0, self._bgr, self._hplane,
+                          mg, self._ray0, P, self._pspans, self._shade_c, self._Q, 0, self._bgr, self._hplane,
                           False, *scratch)
 
         # Glints (half resolution).
