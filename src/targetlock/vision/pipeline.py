@@ -29,7 +29,7 @@ from .tracker import TrackResult, make_tracker, to_observation
 
 __all__ = ["VisionPipeline", "REGION_MARGIN_PX"]
 
-REGION_MARGIN_PX = 64
+REGION_MARGIN_PX = 40
 """Half side of a partly rendered frame's square beyond the tracker's window (px): the feature
 tracker reads its region (side 1.3 windows + 2 x 46 px) around its prediction and describes
 keyframes within a window + 32 px of the target."""

@@ -295,9 +295,11 @@ def _light_grid(rays, spans, shade_spans, nrm, amb, base_pow, shade_max, cos_lut
         cs = cs_row[:b - a]
         for i in range(b - a):
             cs[i] = -(rx[i] * n0 + ry[i] * n1 + rz[i] * n2)
+        rm = np.float32(0.0)                      # (float32, branch-free: vectorised)
         for i in range(b - a):
-            if cs[i] > 1e-3:
-                cmax = max(cmax, cs[i])
+            rm = max(rm, cs[i])
+        if rm > 1e-3:
+            cmax = max(cmax, float(rm))
         sa, sb = shade_spans[j, 0], shade_spans[j, 1]
         if sb <= sa:
             continue
@@ -1252,7 +1254,12 @@ class Renderer:
         self._pspans_ext[mg:mg + bh] = self._pspans + mg
         self._espans = np.zeros_like(self._pspans_ext)
         self._espans_full = np.zeros_like(self._pspans_ext)
+        self._region_cache: dict[tuple, tuple] = {}
         self._iota = np.arange(we + 16, dtype=f32)
+        rp = 0.7 * r                          # where _image_motion_px looks (normalised rays)
+        px = np.array([[0, 0], [rp, 0], [-rp, 0], [0, rp], [0, -rp]], float) + [cam.cx, cam.cy]
+        self._motion_probes = np.column_stack([(px[:, 0] - cam.cx) / cam.fx, (px[:, 1] - cam.cy) / cam.fy,
+                                               np.ones(len(px))])
         self._shade_c = np.zeros((ch, cw), f32)
         self._cs_row = np.zeros(cw, f32)
         # coarse cells the upsampled shade of P reads (+1 cell)
@@ -1297,6 +1304,17 @@ class Renderer:
         x0, y0, x1, y1 = (float(v) for v in region)
         if not all(map(math.isfinite, (x0, y0, x1, y1))):
             raise ValueError(f"region = {tuple(region)}; needs 4 finite pixel coordinates (x0, y0, x1, y1)")
+        # Widened to multiples of 16 px: whole vectors, and a moving region's spans repeat (cached).
+        key = (math.floor(x0 / 16), math.floor(y0 / 16), math.ceil(x1 / 16), math.ceil(y1 / 16))
+        got = self._region_cache.get(key)
+        if got is None:
+            if len(self._region_cache) >= 256:
+                self._region_cache.clear()
+            got = self._region_cache[key] = self._clip_spans(*(16 * k for k in key))
+        return got
+
+    def _clip_spans(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, ...]:
+        """:meth:`_region_spans` of the region (x0, y0, x1, y1) (image px)."""
         bx, by = self._box[:2]
         rb = (len(self._kw) - 1) // 2
 
@@ -1322,11 +1340,10 @@ class Renderer:
         # A: the region (whole vectors); B: + blur radius; S (half resolution): what the glints
         # upsampled x2 and blurred at A read; H (half resolution): + 1 for the Sobel; P: all of B
         # + blur radius and of H at full resolution.
-        A, ra = clip(self._aspans, (int(math.floor(x0)) - bx, int(math.floor(y0)) - by,
-                                    int(math.ceil(x1)) - bx, int(math.ceil(y1)) - by), 16)
+        A, ra = clip(self._aspans, (x0 - bx, y0 - by, x1 - bx, y1 - by), 16)
         B, rb_ = clip(self._bspans, grow(ra, rb), 16)
-        S, rs = clip(self._sspans, grow(ra, rb + 3, 2), 8)
-        H, rh = clip(self._hspans, grow(rs, 1), 8)
+        S, rs = clip(self._sspans, grow(ra, rb + 3, 2), 1)     # (tight: P, the costly pass, covers H)
+        H, rh = clip(self._hspans, grow(rs, 1), 1)
         P, rp = clip(self._pspans, (min(rb_[0] - rb, 2 * rh[0]), min(rb_[1] - rb, 2 * rh[1]),
                                    max(rb_[2] + rb, 2 * rh[2]), max(rb_[3] + rb, 2 * rh[3])), 16)
         mg = self._MB
@@ -1459,18 +1476,17 @@ class Renderer:
 
     def _image_motion_px(self, rel0: np.ndarray, rel1: np.ndarray) -> float:
         """Largest image motion (px) of plane points seen at five places in the field of view."""
-        r = 0.7 * self.settings.fov_radius_px
-        px = np.array([[0, 0], [r, 0], [-r, 0], [0, r], [0, -r]], float) + [self.cam.cx, self.cam.cy]
-        n = np.column_stack([(px[:, 0] - self.cam.cx) / self.cam.fx, (px[:, 1] - self.cam.cy) / self.cam.fy,
-                             np.ones(len(px))])
-        h0 = np.column_stack([rel0[:3, 0], rel0[:3, 1], rel0[:3, 3]])
-        h1 = np.column_stack([rel1[:3, 0], rel1[:3, 1], rel1[:3, 3]])
-        m = h1 @ np.linalg.inv(h0)
-        q = n @ m.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = q[:, :2] / q[:, 2:3]
-        d = np.hypot(*(q - n[:, :2]).T) * self.cam.fx
-        return float(np.nanmax(d)) if np.all(np.isfinite(d)) else float("inf")
+        n = self._motion_probes
+        cols = [0, 1, 3]
+        try:      # q = n (H1 H0^-1)^T with H = the plane's (x, y, 1) -> ray homography
+            q = n @ np.linalg.solve(rel0[:3, cols].T, rel1[:3, cols].T)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        w = q[:, 2]
+        if not np.all(np.abs(w) > 1e-300):
+            return float("inf")
+        d = np.hypot(q[:, 0] / w - n[:, 0], q[:, 1] / w - n[:, 1]) * self.cam.fx
+        return float(d.max()) if np.all(np.isfinite(d)) else float("inf")
 
     # ----------------------------------------------------------------- render
     def render(self, camera_pose: np.ndarray, target_pose: np.ndarray, *,
