@@ -58,6 +58,7 @@ class VisionPipeline:
         self.render_seconds = 0.0
         self.track_seconds = 0.0
         self.frames = 0
+        self.partial_frames = 0        # rendered only around the tracker's target (regions=True)
         self.errors: list[float] = []
         self._writer = None
         self.on_frame = on_frame        # (capture time s, BGR image, tracker result) of every frame
@@ -80,9 +81,11 @@ class VisionPipeline:
             start_cam = interpolate_pose(self.prev[1], cam_pose, f)
             start_target = interpolate_pose(self.prev[2], target_pose, f)
         self.prev = (t, cam_pose, target_pose)
+        region = self._region()
+        self.partial_frames += region is not None
         t0 = time.perf_counter()
         frame = self.renderer.render(start_cam, start_target, camera_pose_end=cam_pose, target_pose_end=target_pose,
-                                     region=self._region(), time_s=t - 0.5 * min(self.exposure, t))
+                                     region=region, time_s=t - 0.5 * min(self.exposure, t))
         t1 = time.perf_counter()
         if not self.selected:
             self.selected = True
@@ -119,7 +122,7 @@ class VisionPipeline:
     def stats(self) -> dict:
         e = np.asarray(self.errors)
         n = max(self.frames, 1)
-        return {"frames": self.frames, "render_ms": 1e3 * self.render_seconds / n, "track_ms": 1e3 * self.track_seconds / n,
+        return {"frames": self.frames, "partial_frames": self.partial_frames, "render_ms": 1e3 * self.render_seconds / n, "track_ms": 1e3 * self.track_seconds / n,
                 "tracker_median_px": float(np.median(e)) if e.size else float("nan"),
                 "tracker_p95_px": float(np.percentile(e, 95)) if e.size else float("nan")}
 
