@@ -17,7 +17,13 @@ The renderer turns a camera pose and a target pose (4x4, in the world frame, met
 Geometry: the target is the plane z = 0 of its frame; texture x runs along the frame's x axis,
 texture y along its y axis and the texture's centre is the frame origin. A target frame with
 identity rotation placed at (0, 0, d) in the camera frame is seen face-on, upright. Plane points
-are given in metres in that frame: (x right, y down from the centre).
+are given in metres in that frame: (x right, y down from the centre). With a ``surface`` that is
+not flat (:class:`~targetlock.model.scene.SurfaceParams`, ``kind = "folds"``) plane point (x, y)
+sits at (x, y, w(x, y, t)) instead: the rays of the coarse light grid are intersected with that
+surface and the texture is sampled through the interpolated texel coordinates.
+
+``render(region=)`` renders only part of the frame (the pixels a tracker reads), each pixel as in
+the whole frame.
 
 Speed (one core: ~2 ms per still 720x576 frame, ~3-3.8 ms with 2-4 motion-blur sub-poses):
 everything per pixel runs in a few numba kernels, only over the pixels of the round field of
