@@ -66,3 +66,24 @@ def test_bad_waypoints_are_refused_with_the_file_named(tmp_path):
         scene(path="waypoints", waypoints_file=str(f))
     with pytest.raises(ConfigError, match="waypoints_file"):
         validate(SceneParams(path="waypoints"))
+
+
+def test_folds_surface_moves_the_target_along_the_normal_with_breathing_and_peristalsis():
+    from targetlock.model.scene import SurfaceParams
+    surf = SurfaceParams(kind="folds", breathing_amplitude=0.003, breathing_rate=0.2, peristalsis_amplitude=0.0)
+    s = Scene(SceneParams(path="static", surface=surf), CAM, START)
+    plain = scene(path="static")
+    t = np.linspace(0.0, 10.0, 201)
+    d = s.target_position(t) - plain.target_position(t)
+    normal = START[:3, 2]                                # the start camera's view axis
+    np.testing.assert_allclose(d - np.outer(d @ normal, normal), 0.0, atol=1e-12)   # along the normal only
+    w = d @ normal
+    assert w.min() > 0.0                                 # the target sits on the lumen's wall, deeper than the plane
+    np.testing.assert_allclose(np.ptp(w), 2 * 0.003, rtol=1e-3)                   # breathing, peak to peak
+    np.testing.assert_allclose(w[t <= 5.0], w[t >= 5.0], atol=1e-12)              # period 1 / 0.2 Hz
+    np.testing.assert_allclose(s.target_pose(3.0), plain.target_pose(3.0))        # the plane's frame stays
+    # the height field's slope is what the renderer's Newton steps use
+    r = np.linspace(0.0, 0.06, 6001)
+    wr, dw = SurfaceParams(kind="folds").profile(r, 1.7)
+    np.testing.assert_allclose(np.gradient(wr, r)[1:-1], dw[1:-1], atol=2e-3)
+    assert not SurfaceParams(kind="folds", amplitude=0.0).height(0.01, 0.0, 1.0)   # amplitude 0: the plane

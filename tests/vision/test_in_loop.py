@@ -47,3 +47,31 @@ def test_vision_eval_command(tmp_path, capsys):
     assert set(s["content"]) == {"mucosa", "retina", "coffee"} and set(s["references"]) == {"mil", "lk"}
     assert s["content"]["mucosa"]["tracked_fraction"] > 0.9 and s["selection_failures"] == 0
     assert all(m["false_lock_fraction"] == 0.0 for m in s["content"].values())
+
+
+def test_partial_frames_give_the_loop_exactly_what_whole_frames_give():
+    """Without a video or run folder the loop renders tracked frames only around the target; the
+    tracker must read nothing outside (else this run would differ from the whole-frame one)."""
+    from targetlock.experiments.target_lock import RunConfig, run_target_lock
+    from targetlock.loop.runner import LoopConfig
+    from targetlock.vision.pipeline import VisionPipeline
+
+    cfg = RunConfig(loop=LoopConfig(seconds=3.0), vision=True, seed=1)
+    part = run_target_lock(cfg)
+    whole_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed)
+    whole = run_target_lock(cfg, frame_hook=whole_hook)
+    assert part["vision"]["partial_frames"] > 0.75 * part["vision"]["frames"] and whole_hook.partial_frames == 0
+    assert part["rms_px"] == whole["rms_px"]
+    assert part["vision"]["tracker_median_px"] == whole_hook.stats()["tracker_median_px"]
+
+
+def test_loop_with_vision_on_deforming_folds(capsys, tmp_path):
+    """The folds scene (lumen, breathing, peristalsis) in the loop: the tracker follows the moving
+    surface point and the lock matches the ideal projection's."""
+    args = ["run", "--seconds", "4", "--set", "twin.scene.surface.kind=folds", "--json"]
+    assert main([*args, "--vision", "--out", str(tmp_path / "v")]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert main([*args, "--out", str(tmp_path / "i")]) == 0
+    ideal = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["vision"]["tracker_median_px"] < 1.5 and s["lost_fraction"] == 0.0
+    assert abs(s["rms_px"] - ideal["rms_px"]) < 0.15 * ideal["rms_px"] + 2.0

@@ -8,6 +8,7 @@ import pytest
 
 from targetlock.config import ConfigError, validate
 from targetlock.model.camera import CameraParams, project, world_to_camera
+from targetlock.model.scene import SurfaceParams
 from targetlock.vision import (PlanarTarget, Renderer, RenderSettings, add_dot, aruco_texture, endoscope_camera,
                                make_pose, mucosa_texture)
 from targetlock.vision import render as render_module
@@ -221,3 +222,106 @@ def test_render_benchmark_reports_per_frame_times():
     res = render_benchmark(3, subposes=(1, 3), texture_px=512)
     assert res["camera"] == "pinhole" and res["frames"] == 3 and set(res["ms"]) == {1, 3}
     assert all(0.0 < v["median"] <= v["p95"] for v in res["ms"].values())
+
+
+@pytest.mark.parametrize("camera", ["distorted", "pinhole"])
+def test_a_region_renders_the_same_pixels_as_the_whole_frame(mucosa_target, camera):
+    """Partial frames (for a tracker that reads only its region) equal the whole frame where drawn,
+    glints, blur, noise and motion blur included, also after other regions left their buffers."""
+    cam = endoscope_camera() if camera == "distorted" else CameraParams()
+    r = Renderer(cam, RenderSettings(specular_strength=6.0), mucosa_target, seed=5)
+    for i in range(6):
+        pose = make_pose((0.003 * math.sin(i), 0.002 * math.cos(i), 0.05 + 0.01 * i),
+                         (0.5 * math.cos(0.7 * i), 0.5 * math.sin(0.7 * i), 0.1 * i))
+        end = pose.copy()
+        end[0, 3] += 0.0004 * (i % 3)                      # still, 2 and several sub-poses
+        kw = {"target_pose_end": end} if i % 3 else {}
+        r.reseed(i)
+        full = r.render(np.eye(4), pose, **kw).image
+        x0, y0 = 60 + 61 * i, 20 + 57 * i
+        r.reseed(i)
+        part = r.render(np.eye(4), pose, region=(x0, y0, x0 + 150.5, y0 + 130), **kw).image
+        inside = np.zeros(part.shape[:2], bool)
+        inside[y0:y0 + 130, x0:x0 + 151] = True              # x1 = 150.5 covers column x0 + 150
+        drawn = inside | (part.max(axis=2) > 0)
+        assert np.array_equal(part[drawn], full[drawn])
+        assert drawn.sum() < 0.5 * (full.max(axis=2) > 0).sum()    # the rest is not rendered
+    with pytest.raises(ValueError, match="region"):
+        r.render(np.eye(4), make_pose((0, 0, 0.05)), region=(0, 0, float("nan"), 10))
+
+
+# ------------------------------------------------------------------- surfaces that are not flat
+def _dots_target():
+    tex = with_height(np.full((2048, 2048, 3), 60, np.uint8))
+    for p in DOTS:
+        tex = add_dot(tex, p, SIZE, 0.0008)
+    return PlanarTarget(SIZE, tex)
+
+
+def test_folds_of_zero_amplitude_render_as_the_plane(cam, mucosa_target):
+    """The surface path (ray intersection, texel grids, normal shading, glints on the slope) with a
+    vanishing height field gives the plane's image up to rounding."""
+    pose = make_pose((0.002, -0.001, 0.06), (0.2, -0.1, 0.3))
+    plane = Renderer(cam, RenderSettings(), mucosa_target, seed=2).render(np.eye(4), pose).image
+    flat = Renderer(cam, RenderSettings(), mucosa_target, seed=2,
+                    surface=SurfaceParams(kind="folds", amplitude=1e-9)).render(np.eye(4), pose, time_s=1.3).image
+    d = np.abs(plane.astype(int) - flat.astype(int))
+    assert d.mean() < 0.05 and np.percentile(d, 99.9) <= 1 and d.max() <= 12   # (glint weights interpolated)
+
+
+def test_target_on_deforming_folds_is_drawn_where_its_truth_projects(cam, clean_settings):
+    """The selected point moves with the breathing, peristaltic surface; the rendered dot follows
+    the projection of that surface point within a pixel."""
+    surf = SurfaceParams(kind="folds", lumen_offset=(0.01, 0.005), breathing_amplitude=0.004)
+    r = Renderer(cam, clean_settings, _dots_target(), surface=surf)
+    pose = make_pose((0.004, -0.002, 0.05), (0.15, -0.1, 0.2))
+    truths = []
+    for t in (0.0, 0.7, 1.4, 2.1, 2.8):
+        for p in DOTS[1:4]:
+            frame = r.render(np.eye(4), pose, point_m=p, time_s=t)
+            err = np.hypot(*(_centroid(frame.image, frame.truth_px) - frame.truth_px))
+            assert err < 1.0, f"dot {p} at t = {t} s: centroid off by {err:.2f} px"
+            truths.append(frame.truth_px)
+        w = surf.height(DOTS[1][0], DOTS[1][1], t)
+        world = (pose @ [DOTS[1][0], DOTS[1][1], w, 1.0])[:3]
+        np.testing.assert_allclose(r.truth(np.eye(4), pose, DOTS[1], t), project(world_to_camera(np.eye(4), world), cam))
+    moved = np.ptp(np.array(truths[::3]), axis=0)
+    assert np.hypot(*moved) > 2.0                        # the deformation moves the target visibly
+
+
+def test_moving_tip_shows_parallax_over_a_lumen(cam, clean_settings):
+    """Sideways tip motion moves near tissue more in the image than the deep lumen behind it."""
+    deep, near = DOTS[2], DOTS[3]                        # lumen axis at ``deep``: 30 mm further away
+    surf = SurfaceParams(kind="folds", lumen_offset=deep, lumen_depth=0.03, fold_amplitude=0.0,
+                         breathing_amplitude=0.0, peristalsis_amplitude=0.0)
+    r = Renderer(cam, clean_settings, _dots_target(), surface=surf)
+    flat = Renderer(cam, clean_settings, _dots_target())
+    pose = make_pose((-0.005, -0.017, 0.05))
+    moved = make_pose((0.004, 0.0, 0.0))                 # the tip 4 mm to the right
+
+    def shift(rend, p):
+        a, b = (rend.render(c, pose, point_m=p) for c in (np.eye(4), moved))
+        for f in (a, b):
+            assert np.hypot(*(_centroid(f.image, f.truth_px) - f.truth_px)) < 1.0
+        return np.hypot(*(_centroid(b.image, b.truth_px) - _centroid(a.image, a.truth_px)))
+
+    s_near, s_deep = shift(r, near), shift(r, deep)
+    assert s_near > 1.3 * s_deep > 10.0
+    # on the plane both points are at one depth: no such difference
+    assert abs(shift(flat, near) - shift(flat, deep)) < 0.15 * shift(flat, near)
+
+
+def test_breathing_is_periodic_at_its_rate(cam):
+    surf = SurfaceParams(kind="folds", breathing_rate=0.25, peristalsis_amplitude=0.0)
+    r = Renderer(cam, RenderSettings(), PlanarTarget.mucosa(seed=1, texture_px=512), seed=4, surface=surf)
+    pose = make_pose((0.0, 0.0, 0.05))
+
+    def frame(t):
+        r.reseed(0)
+        return r.render(np.eye(4), pose, time_s=t, point_m=(0.004, 0.002))
+
+    a, period, half = frame(0.3), frame(0.3 + 4.0), frame(0.3 + 2.0)
+    assert np.array_equal(a.image, period.image)
+    np.testing.assert_allclose(a.truth_px, period.truth_px, atol=1e-9)
+    assert np.abs(a.image.astype(int) - half.image.astype(int)).mean() > 2.0
+    assert np.hypot(*(a.truth_px - half.truth_px)) > 0.3

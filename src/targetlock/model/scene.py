@@ -19,13 +19,22 @@ is centred at t = 0 unless the path says otherwise (the step).
   and run folders keep a copy of it.
 
 The target is a plane facing the start camera; its pose's origin is the selected target point.
+
+The tissue surface (``surface``, :class:`SurfaceParams`) is that plane (``kind = "plane"``, the
+default) or, with ``kind = "folds"``, the plane displaced along its normal (away from the start
+camera) by a radial height field: a lumen (a deep funnel around an axis beside the target point)
+with haustra-like ring folds, which breathes (the whole surface moves ~2 mm at ~0.25 Hz) and
+carries a peristalsis-like wave travelling out from the lumen. A plane point (x, y) (m, in the
+target's frame) sits at (x, y, w(x, y, t)); the target point (0, 0) too, so
+:meth:`Scene.target_position` moves with the deformation while :meth:`Scene.target_pose` stays the
+undeformed plane's frame.
 """
 from __future__ import annotations
 
 import csv
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +43,55 @@ from ..config import ConfigError, param, read_text_file
 from ..errors import InputFileError
 from .camera import CameraParams, unproject
 
-__all__ = ["SceneParams", "Scene", "PATHS"]
+__all__ = ["SceneParams", "SurfaceParams", "Scene", "PATHS", "SURFACES"]
 
 PATHS = ("linear", "ellipse", "step", "static", "waypoints")
+SURFACES = ("plane", "folds")
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """Shape of the tissue surface and how it deforms (see the module docstring)."""
+    kind: str = param("plane", choices=SURFACES, doc="'plane' or 'folds' (a lumen with folds that breathes)")
+    amplitude: float = param(1.0, lo=0.0, hi=10.0, doc="scales every displacement of 'folds' (0: the plane)")
+    lumen_offset: tuple[float, float] = param((0.012, -0.008), unit="m", lo=-1.0, hi=1.0,
+                                              doc="lumen axis from the target point, in the plane (x right, y down)")
+    lumen_depth: float = param(0.02, unit="m", lo=0.0, hi=0.5, doc="depth of the lumen on its axis")
+    lumen_radius: float = param(0.018, unit="m", lo=1e-3, hi=0.5, doc="radius at which the lumen is half as deep")
+    fold_amplitude: float = param(0.001, unit="m", lo=0.0, hi=0.05, doc="height of the ring folds (haustra)")
+    fold_spacing: float = param(0.012, unit="m", lo=1e-3, hi=0.5, doc="distance between ring folds")
+    breathing_amplitude: float = param(0.002, unit="m", lo=0.0, hi=0.05, doc="breathing displacement (peak)")
+    breathing_rate: float = param(0.25, unit="Hz", lo=0.0, hi=5.0, doc="breathing frequency")
+    peristalsis_amplitude: float = param(0.001, unit="m", lo=0.0, hi=0.05, doc="peristaltic wave height")
+    peristalsis_wavelength: float = param(0.03, unit="m", lo=1e-3, hi=1.0, doc="peristaltic wavelength")
+    peristalsis_speed: float = param(0.01, unit="m/s", lo=0.0, hi=1.0, doc="speed of the wave out from the lumen")
+
+    @property
+    def flat(self) -> bool:
+        """The surface is the undeformed plane (w = 0 everywhere, always)."""
+        return self.kind == "plane" or self.amplitude == 0.0
+
+    def profile(self, r: np.ndarray | float, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement w (m, along the plane normal away from the start camera) at distance ``r``
+        (m) from the lumen axis at time ``t`` (s), and dw/dr."""
+        r = np.asarray(r, dtype=float)
+        if self.flat:
+            return np.zeros_like(r), np.zeros_like(r)
+        a, r2 = self.amplitude, self.lumen_radius ** 2
+        kf = 2 * math.pi / self.fold_spacing
+        kp = 2 * math.pi / self.peristalsis_wavelength
+        phase = kp * r - kp * self.peristalsis_speed * t
+        w = a * (self.lumen_depth * r2 / (r2 + r * r) + self.fold_amplitude * np.cos(kf * r)
+                 + self.peristalsis_amplitude * np.sin(phase)
+                 + self.breathing_amplitude * math.sin(2 * math.pi * self.breathing_rate * t))
+        dw = a * (-2 * self.lumen_depth * r2 * r / (r2 + r * r) ** 2 - self.fold_amplitude * kf * np.sin(kf * r)
+                  + self.peristalsis_amplitude * kp * np.cos(phase))
+        return w, dw
+
+    def height(self, x: np.ndarray | float, y: np.ndarray | float, t: float) -> np.ndarray:
+        """Displacement w (m) of plane point(s) (x, y) (m, target frame) at time ``t`` (s)."""
+        cx, cy = self.lumen_offset
+        return self.profile(np.hypot(np.asarray(x, float) - cx, np.asarray(y, float) - cy), t)[0]
 
 
 @dataclass(frozen=True)
@@ -58,6 +113,7 @@ class SceneParams:
     ellipse_frequency: float = param(0.05, unit="Hz", lo=0.001, hi=10.0, doc="revolutions per second (report: 0.05 Hz)")
     step_offset_px: tuple[float, float] = param((-180.0, 0.0), unit="px", lo=-4096.0, hi=4096.0,
                                                 doc="where the step target appears, from the image centre")
+    surface: SurfaceParams = field(default_factory=SurfaceParams)
 
     def check(self, prefix: str = "") -> None:
         if self.path == "waypoints" and not self.waypoints_file:
@@ -165,12 +221,19 @@ class Scene:
         return (0.0, 0.0, 0.0)
 
     def target_position(self, t: float | np.ndarray) -> np.ndarray:
-        """Selected target point in the world (base) frame (m), shape (..., 3)."""
-        return self.anchor + self.offset(t) @ self.rotation.T
+        """Selected target point in the world (base) frame (m), shape (..., 3): on the surface, so
+        displaced with it when the surface is not flat."""
+        pos = self.anchor + self.offset(t) @ self.rotation.T
+        surf = self.params.surface
+        if surf.flat:
+            return pos
+        w = np.vectorize(lambda tt: float(surf.height(0.0, 0.0, tt)))(t)
+        return pos + np.multiply.outer(w, self.rotation[:, 2])
 
     def target_pose(self, t: float) -> np.ndarray:
-        """4x4 pose of the target plane: origin at the selected point, facing the start camera."""
+        """4x4 pose of the target plane: origin at the selected point (of the undeformed plane when
+        the surface is not flat), facing the start camera."""
         pose = np.eye(4)
         pose[:3, :3] = self.rotation
-        pose[:3, 3] = self.target_position(t)
+        pose[:3, 3] = self.anchor + self.offset(t) @ self.rotation.T
         return pose

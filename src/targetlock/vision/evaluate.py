@@ -16,6 +16,8 @@ remaining frames. Default sequences (:data:`SEQUENCES`):
 ``leave``     the view pans until the target leaves the field of view, then comes back
 ``scale``     the tip approaches from 75 mm to 30 mm (target 2.5x larger)
 ``rotation``  the target turns 180 deg in the image plane
+``folds``     not a plane: a lumen with ring folds that breathes and carries a peristaltic wave
+              (``model.scene.SurfaceParams``), target on its wall, the tip moving sideways (parallax)
 
 Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
 
@@ -47,6 +49,7 @@ import numpy as np
 from ..config import param, validate
 from ..model.camera import CameraParams
 from ..model.kinematics import tip_pose
+from ..model.scene import SurfaceParams
 from .render import Frame, PlanarTarget, Renderer, RenderSettings, endoscope_camera, make_pose
 from .reference import make_reference, reference_trackers
 from .texture import PHOTOS, photo_texture
@@ -55,7 +58,7 @@ from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, Tra
 __all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon"]
 
 SEQUENCES = ("slow", "fast", "tip", "blur", "specular", "lighting", "noise", "occlusion", "leave", "scale",
-             "rotation")
+             "rotation", "folds")
 THRESHOLDS_PX = (4.0, 8.0, 16.0, 32.0, 64.0)
 
 
@@ -170,6 +173,8 @@ class _Scene:
             rv = self.tilt.copy()
             rv[2] += np.pi * u
             pos[:2] += 0.002 * np.sin(np.array([w, w]) + self.phase)
+        elif name == "folds":   # the tissue stays, the tip moves sideways: parallax over the folds
+            cam_pose = make_pose((0.008 * math.sin(w + self.phase[0]), 0.005 * math.sin(2 * w + self.phase[1]), 0.0))
         return cam_pose, self.target_pose(pos, rv), gain, occ
 
 
@@ -185,12 +190,15 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
     if name == "noise":
         rs = replace(rs, noise_sigma=max(rs.noise_sigma, 8.0))
     exposure = cfg.exposure_s * (2.0 if name == "blur" else 1.0)
-    if renderer is None or name == "noise":
-        tgt = target if target is not None else (renderer.target if renderer is not None else None)
-        renderer = Renderer(cam, rs, tgt, seed=seed)
     rng = np.random.default_rng([seed, SEQUENCES.index(name)])
-    renderer.reseed([seed, SEQUENCES.index(name), 1])
     scene = _Scene(name, cfg, cam, rng, cfg.frames / cam.fps)
+    if renderer is None or name in ("noise", "folds"):
+        tgt = target if target is not None else (renderer.target if renderer is not None else None)
+        # folds: the lumen beside the target (as in the scene's default), so the target is on its wall
+        surface = SurfaceParams(kind="folds", lumen_offset=tuple(scene.p_sel + SurfaceParams().lumen_offset)) \
+            if name == "folds" else None
+        renderer = Renderer(cam, rs, tgt, seed=seed, surface=surface)
+    renderer.reseed([seed, SEQUENCES.index(name), 1])
     frames = []
     for i in range(cfg.frames):
         t = i / cam.fps
@@ -198,9 +206,9 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
         if exposure > 0:
             cp1, tp1, _, _ = scene.at(t + exposure)
             frames.append(renderer.render(cp0, tp0, camera_pose_end=cp1, target_pose_end=tp1, light_gain=gain,
-                                          occluders=occ, point_m=scene.p_sel))
+                                          occluders=occ, point_m=scene.p_sel, time_s=t + exposure / 2))
         else:
-            frames.append(renderer.render(cp0, tp0, light_gain=gain, occluders=occ, point_m=scene.p_sel))
+            frames.append(renderer.render(cp0, tp0, light_gain=gain, occluders=occ, point_m=scene.p_sel, time_s=t))
     return frames
 
 

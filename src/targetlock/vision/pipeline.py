@@ -6,6 +6,11 @@ blur from the motion over the exposure), runs the tracker and returns the observ
 puts it on the latency line. The target is selected on the first frame where the clinician would
 click it (the target's true position), with a square window. Optionally every frame is written to
 an MP4 with the tracked target, the image centre and the error drawn on it.
+
+With ``regions=True`` (for runs where nothing but the tracker reads the frames: no video, no
+``on_frame``) a tracked frame is rendered only in a square around the last tracked position and
+where it is heading (:data:`REGION_MARGIN_PX` beyond the tracker's window); the first frame and
+every frame after a miss or loss are rendered whole (selection and re-acquisition search it all).
 """
 from __future__ import annotations
 
@@ -22,7 +27,12 @@ from .overlay import draw_overlay
 from .render import PlanarTarget, RenderSettings, Renderer, interpolate_pose
 from .tracker import TrackResult, make_tracker, to_observation
 
-__all__ = ["VisionPipeline"]
+__all__ = ["VisionPipeline", "REGION_MARGIN_PX"]
+
+REGION_MARGIN_PX = 40
+"""Half side of a partly rendered frame's square beyond the tracker's window (px): the feature
+tracker reads its region (side 1.3 windows + 2 x 46 px) around its prediction and describes
+keyframes within a window + 32 px of the target."""
 
 
 class VisionPipeline:
@@ -31,13 +41,15 @@ class VisionPipeline:
     def __init__(self, twin: TwinConfig, *, tracker: str = "feature", window_px: int = 96, seed: int = 0,
                  settings: RenderSettings | None = None, exposure_fraction: float = 0.5,
                  video: str | Path | None = None,
-                 on_frame: Callable[[float, np.ndarray, TrackResult], None] | None = None) -> None:
+                 on_frame: Callable[[float, np.ndarray, TrackResult], None] | None = None,
+                 regions: bool = False) -> None:
         self.cam = twin.camera
         # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
         size = (0.4, 0.4)
         self.target = (PlanarTarget.aruco(seed=seed, size_m=size, marker_fraction=0.06, texture_px=4096)
                        if tracker == "marker" else PlanarTarget.mucosa(size_m=size, seed=seed, texture_px=4096))
-        self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed)
+        self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed,
+                                 surface=twin.scene.surface)
         self.tracker = make_tracker(tracker, camera=self.cam)
         self.window_px = window_px
         self.exposure = exposure_fraction / self.cam.fps   # s, the shutter is open this long before capture
@@ -46,10 +58,13 @@ class VisionPipeline:
         self.render_seconds = 0.0
         self.track_seconds = 0.0
         self.frames = 0
+        self.partial_frames = 0        # rendered only around the tracker's target (regions=True)
         self.errors: list[float] = []
         self._writer = None
         self.on_frame = on_frame        # (capture time s, BGR image, tracker result) of every frame
         self.last_image: np.ndarray | None = None
+        self.regions = regions
+        self._tracked: list[np.ndarray] = []   # the last two tracked positions (px) while tracked
         if video is not None:
             fourcc = cv2.VideoWriter_fourcc(*"mp4v")
             self._writer = cv2.VideoWriter(str(video), fourcc, self.cam.fps, (self.cam.width, self.cam.height))
@@ -66,14 +81,18 @@ class VisionPipeline:
             start_cam = interpolate_pose(self.prev[1], cam_pose, f)
             start_target = interpolate_pose(self.prev[2], target_pose, f)
         self.prev = (t, cam_pose, target_pose)
+        region = self._region()
+        self.partial_frames += region is not None
         t0 = time.perf_counter()
-        frame = self.renderer.render(start_cam, start_target, camera_pose_end=cam_pose, target_pose_end=target_pose)
+        frame = self.renderer.render(start_cam, start_target, camera_pose_end=cam_pose, target_pose_end=target_pose,
+                                     region=region, time_s=t - 0.5 * min(self.exposure, t))
         t1 = time.perf_counter()
         if not self.selected:
             self.selected = True
             self.tracker.select(frame.image, frame.truth_px, self.window_px)
         result = self.tracker.update(frame.image, t)
         t2 = time.perf_counter()
+        self._tracked = [*self._tracked[-1:], result.position_px.copy()] if result.valid else []
         self.render_seconds += t1 - t0
         self.track_seconds += t2 - t1
         self.frames += 1
@@ -90,10 +109,20 @@ class VisionPipeline:
                                                                             f"target error {err:5.1f} px")))
         return obs
 
+    def _region(self) -> tuple[float, float, float, float] | None:
+        """Image square (x0, y0, x1, y1) the next frame needs, or None for the whole frame: around
+        the last tracked position and that plus twice the last frame's motion."""
+        if not (self.regions and self._tracked and self._writer is None and self.on_frame is None):
+            return None
+        p = self._tracked[-1]
+        q = p + 2 * (p - self._tracked[0])        # (p itself after one tracked frame)
+        h = self.window_px + REGION_MARGIN_PX
+        return (min(p[0], q[0]) - h, min(p[1], q[1]) - h, max(p[0], q[0]) + h, max(p[1], q[1]) + h)
+
     def stats(self) -> dict:
         e = np.asarray(self.errors)
         n = max(self.frames, 1)
-        return {"frames": self.frames, "render_ms": 1e3 * self.render_seconds / n, "track_ms": 1e3 * self.track_seconds / n,
+        return {"frames": self.frames, "partial_frames": self.partial_frames, "render_ms": 1e3 * self.render_seconds / n, "track_ms": 1e3 * self.track_seconds / n,
                 "tracker_median_px": float(np.median(e)) if e.size else float("nan"),
                 "tracker_p95_px": float(np.percentile(e, 95)) if e.size else float("nan")}
 

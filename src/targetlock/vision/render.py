@@ -17,7 +17,13 @@ The renderer turns a camera pose and a target pose (4x4, in the world frame, met
 Geometry: the target is the plane z = 0 of its frame; texture x runs along the frame's x axis,
 texture y along its y axis and the texture's centre is the frame origin. A target frame with
 identity rotation placed at (0, 0, d) in the camera frame is seen face-on, upright. Plane points
-are given in metres in that frame: (x right, y down from the centre).
+are given in metres in that frame: (x right, y down from the centre). With a ``surface`` that is
+not flat (:class:`~targetlock.model.scene.SurfaceParams`, ``kind = "folds"``) plane point (x, y)
+sits at (x, y, w(x, y, t)) instead: the rays of the coarse light grid are intersected with that
+surface and the texture is sampled through the interpolated texel coordinates.
+
+``render(region=)`` renders only part of the frame (the pixels a tracker reads), each pixel as in
+the whole frame.
 
 Speed (one core: ~2 ms per still 720x576 frame, ~3-3.8 ms with 2-4 motion-blur sub-poses):
 everything per pixel runs in a few numba kernels, only over the pixels of the round field of
@@ -46,6 +52,7 @@ from numba.extending import intrinsic
 
 from ..config import param, validate
 from ..model.camera import CameraParams, project, world_to_camera
+from ..model.scene import SurfaceParams
 from .texture import aruco_texture, mucosa_texture, with_height
 
 __all__ = ["RenderSettings", "PlanarTarget", "Frame", "Renderer", "make_pose", "interpolate_pose",
@@ -276,10 +283,11 @@ _bilerp16_add = _make_bilerp16(True)
 
 
 @njit(**_JIT)
-def _light_grid(rays, spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_row):
-    """Diffuse shade on the coarse grid of unit rays ((3, ch, cw) float32), over the row ``spans``:
-    ambient + (e0 cos^3)^(1/gamma) = amb + base_pow cos^(3/gamma) (``cos_lut``), clipped to
-    ``shade_max`` and truncated to 1/128 like an 8-bit image; returns the largest cos (0 if none)."""
+def _light_grid(rays, spans, shade_spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_row):
+    """Diffuse shade on the coarse grid of unit rays ((3, ch, cw) float32), over the row
+    ``shade_spans`` (within ``spans``): ambient + (e0 cos^3)^(1/gamma) = amb + base_pow
+    cos^(3/gamma) (``cos_lut``), clipped to ``shade_max`` and truncated to 1/128 like an 8-bit
+    image; returns the largest cos over ``spans`` (0 if none)."""
     nl = cos_lut.shape[0] - 1
     n0, n1, n2 = np.float32(nrm[0]), np.float32(nrm[1]), np.float32(nrm[2])
     cmax = 0.0
@@ -293,15 +301,22 @@ def _light_grid(rays, spans, nrm, amb, base_pow, shade_max, cos_lut, shade, cs_r
         cs = cs_row[:b - a]
         for i in range(b - a):
             cs[i] = -(rx[i] * n0 + ry[i] * n1 + rz[i] * n2)
-        sh = shade[j, a:b]
+        rm = np.float32(0.0)                      # (float32, branch-free: vectorised)
         for i in range(b - a):
-            c = cs[i]
+            rm = max(rm, cs[i])
+        if rm > 1e-3:
+            cmax = max(cmax, float(rm))
+        sa, sb = shade_spans[j, 0], shade_spans[j, 1]
+        if sb <= sa:
+            continue
+        sh = shade[j, sa:sb]
+        for i in range(sb - sa):
+            c = cs[sa - a + i]
             if c > 1e-3:
                 t = c * nl
                 k = min(int(t), nl - 1)
                 p = cos_lut[k] + (cos_lut[k + 1] - cos_lut[k]) * (t - k)
                 sh[i] = math.floor(min(amb + base_pow * p, shade_max) * 128.0) / 128.0
-                cmax = max(cmax, c)
             else:
                 sh[i] = 0.0
     return cmax
@@ -371,8 +386,20 @@ def _texel_coords(m, k, rx, ry, fu, fv, umax, vmax):
 
 
 @njit(**_JIT)
-def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans, shade_c, q, boff, planes, hplane,
-                  inter, iota, rxs, rys, fus, fvs, acc, srow, crow, ext):
+def _grid_coords(gu, gv, fu, fv, umax, vmax):
+    """Texel coordinates as :func:`_texel_coords` gives them, from level texel coordinates
+    (``gu``, ``gv``, float32) interpolated from a surface's coarse grid."""
+    lo = np.float32(-_PAD * _FIX)
+    for i in range(fu.shape[0]):
+        u = min(max(gu[i] * np.float32(_FIX), lo), umax)
+        v = min(max(gv[i] * np.float32(_FIX), lo), vmax)
+        fu[i] = np.int32(u + np.float32(_PAD * _FIX + 0.5))
+        fv[i] = np.int32(v + np.float32(_PAD * _FIX + 0.5))
+
+
+@njit(**_JIT)
+def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans, ospans, shade_c, q, boff, planes,
+                  hplane, inter, iota, rxs, rys, fus, fvs, acc, srow, crow, ext, grids, grow):
     """Image (B, G, R interleaved: ``planes`` (rows, cols, 3) uint8) and height (``hplane``
     (rows, cols) uint8) over the row ``spans``.
 
@@ -381,12 +408,18 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans
     undistorted normalised ray -> level texel) and averaged; B, G, R are multiplied by the shade,
     upsampled from ``shade_c`` (x``q``, on the field-of-view box). Output pixel (y, x) is box pixel
     (y - boff, x - boff). Rays: ``rx_map``/``ry_map`` at (y + moff, x + moff) if not empty (lens
-    distortion), else ray0[:2] + (x, y) * ray0[2:]. ``inter``: ``planes`` is (rows, cols, 4) float32
+    distortion), else ray0[:2] + (x, y) * ray0[2:], in float32 from the start of the row's span in
+    ``ospans`` (the whole frame's spans, which contain ``spans``: a region renders as in the whole
+    frame). ``inter``: ``planes`` is (rows, cols, 4) float32
     (B, G, R, height, unrounded) instead and ``hplane`` is unused.
     ``srow``: scratch of the box width + twice the largest ``boff``; ``iota`` = 0, 1, 2, ... (float32);
     the rest are scratch rows (``fus``, ``fvs``, ``acc`` rows: 16 longer than the widest span).
+    ``grids`` (n, 2, rows / q, cols / q) float32, if not empty (a surface that is not a plane;
+    only with ``boff`` = 0): level texel coordinates on the coarse grid at each sub-pose, upsampled
+    x``q`` instead of the homographies ``mats``; ``grow``: (2, cols) float32 scratch.
     """
-    n = mats.shape[0]
+    have_grid = grids.shape[0] > 0
+    n = grids.shape[0] if have_grid else mats.shape[0]
     have_map = rx_map.shape[0] > 0
     inv_n = np.float32(1.0 / (_FIX * _FIX * n))
     half = np.float32(0.5)
@@ -408,10 +441,11 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans
         else:
             rx = rxs[:m]
             ry = rys[:m]
-            x0 = np.float32(ray0[0] + xa * ray0[2])
+            oa = ospans[y, 0]
+            x0 = np.float32(ray0[0] + oa * ray0[2])
             dx = np.float32(ray0[2])
             yv = np.float32(ray0[1] + y * ray0[3])
-            xs = iota[:m]
+            xs = iota[xa - oa:xb - oa]
             for i in range(m):
                 rx[i] = x0 + xs[i] * dx
                 ry[i] = yv
@@ -427,7 +461,12 @@ def _sample_shade(tex, rowb, umax, vmax, mats, rx_map, ry_map, moff, ray0, spans
         fv = fvs[:m]
         m16 = (m + 15) // 16 * 16
         for k in range(n):
-            _texel_coords(mats, k, rx, ry, fu, fv, umax, vmax)
+            if have_grid:
+                _coarse_row(grids[k, 0], y, q, crow, ext, grow[0])
+                _coarse_row(grids[k, 1], y, q, crow, ext, grow[1])
+                _grid_coords(grow[0, xa:xb], grow[1, xa:xb], fu, fv, umax, vmax)
+            else:
+                _texel_coords(mats, k, rx, ry, fu, fv, umax, vmax)
             for i in range(m, m16):                 # the gathers' tail lanes: texel (0, 0)
                 fus[i] = 0
                 fvs[i] = 0
@@ -589,7 +628,7 @@ def _dilate_spans(spans, r, width, out):
 
 @njit(**_JIT)
 def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, half_k, thresh, hmap, t_row, spec,
-                   lit_rng):
+                   lit_rng, sgrid, srows, crow, ext):
     """Glints at half resolution into ``spec`` (uint8) over ``sspans``; returns whether any is lit.
 
     Lobe exp(-k/2 |a - g|^2) times the glint weight w_scale cos^3 (cos = -ray . nrm) times the
@@ -599,7 +638,11 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
     ``hmap``: (h2 + 2, w2 + 2) float32 scratch (averaged height, reflected 1-pixel border).
     Pixels with k/2 |a - g|^2 >= ``thresh`` round to 0 and skip the exponential. ``lit_rng`` (h2, 2):
     per row, the columns [first, last + 1) with a glint ((0, 0) if none).
+    ``sgrid`` (3, h2 / 2, w2 / 2) float32, if not empty (a surface that is not a plane): on the
+    coarse grid, the surface's own slope along the texture axes (added to the bump slope) and the
+    glint weight (instead of w_scale cos^3), upsampled x2 (``srows`` (3, w2), ``crow``, ``ext``: scratch).
     """
+    have_grid = sgrid.shape[0] > 0
     h2, w2 = spec.shape
     for i in range(h2):
         ja, jb = hspans[i, 0], hspans[i, 1]
@@ -644,14 +687,28 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
         q2 = hmap[i + 2, ja:jb + 2]
         tt = t_row[:m]
         cand = 0
-        for t in range(m):
-            gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])   # Sobel x 16
-            gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
-            d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2)
-            d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2)
-            x = hk * (d1 * d1 + d2 * d2)
-            tt[t] = x
-            cand += np.int32(x < th)
+        if have_grid:
+            for c in range(3):
+                _coarse_row(sgrid[c], i, 2, crow, ext, srows[c])
+            ax = srows[0, ja:jb]
+            ay = srows[1, ja:jb]
+            for t in range(m):
+                gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])
+                gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
+                d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2) + ax[t]
+                d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2) + ay[t]
+                x = hk * (d1 * d1 + d2 * d2)
+                tt[t] = x
+                cand += np.int32(x < th)
+        else:
+            for t in range(m):
+                gx = (q0[t + 2] + two * q1[t + 2] + q2[t + 2]) - (q0[t] + two * q1[t] + q2[t])   # Sobel x 16
+                gy = (q2[t] + two * q2[t + 1] + q2[t + 2]) - (q0[t] + two * q0[t + 1] + q0[t + 2])
+                d1 = (c00 * gx + c01 * gy) + (rx[t] * u0 + ry[t] * u1 + rz[t] * u2)
+                d2 = (c10 * gx + c11 * gy) + (rx[t] * v0 + ry[t] * v1 + rz[t] * v2)
+                x = hk * (d1 * d1 + d2 * d2)
+                tt[t] = x
+                cand += np.int32(x < th)
         sp = spec[i, ja:jb]
         for t in range(m):
             sp[t] = 0
@@ -663,9 +720,16 @@ def _specular_half(hplane, hspans, sspans, rays, nrm, r0, r1, w_scale, cmat, hal
         last = -1
         for t in range(m):
             if tt[t] < th:
-                cs = -(rx[t] * n0 + ry[t] * n1 + rz[t] * n2)
-                if cs > 1e-3:
-                    v = math.exp(-tt[t]) * w_scale * cs * cs * cs * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                v = 0.0
+                if have_grid:
+                    wt = srows[2, ja + t]
+                    if wt > 0:
+                        v = math.exp(-tt[t]) * wt * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                else:
+                    cs = -(rx[t] * n0 + ry[t] * n1 + rz[t] * n2)
+                    if cs > 1e-3:
+                        v = math.exp(-tt[t]) * w_scale * cs * cs * cs * min(q1[t + 1], 16.0) * (255.0 / 16.0) + 0.5
+                if v > 0:
                     iv = min(int(v), 255)
                     sp[t] = iv
                     if iv > 0:
@@ -936,6 +1000,95 @@ def _subpose_homs(cp0, cp1, tp0, tp1, fractions, tex0, out):
     return True
 
 
+@njit(**_JIT)
+def _surface_grid(rays, spans, rot, org, lut_w, lut_d, r_step, lx, ly, aff, out, shade, sgrid, e_ref, amb, inv_gamma,
+                  shade_max, w_glint):
+    """Intersect the unit rays of the coarse grid (``rays`` (3, ch, cw), camera frame) over the
+    row ``spans`` with the surface z = w(x, y) of the target frame, w a radial profile around
+    (lx, ly) tabulated at r = k ``r_step`` (``lut_w``, ``lut_d`` = dw/dr; m), by Newton's method
+    along each ray (bracketed: it always converges), started from the neighbour's solution; ``rot``: camera ->
+    target rotation, ``org``: the camera in the target frame (m). ``out`` (2, ch, cw): level texel
+    coordinates u = aff[0] x + aff[1], v = aff[2] y + aff[3] (-1e9, the border, where the ray
+    misses). If ``shade`` has rows, also the diffuse shade there (as :func:`_light_grid`: ambient +
+    (e_ref cos / distance^2)^(1/gamma), cos between ray and surface normal) and ``sgrid`` (3, ch,
+    cw): the surface slope along the texture axes (sign: as the view tilt in :func:`_specular_half`)
+    and the glint weight ``w_glint`` x irradiance. Returns the largest glint weight."""
+    nl = lut_w.shape[0] - 1
+    inv_step = 1.0 / r_step
+    with_shade = shade.shape[0] > 0
+    sigma = 1.0 if org[2] < 0 else -1.0                  # the camera on the plane's -z side: normal -z
+    w_far = lut_w.max() + 1e-3 if sigma > 0 else lut_w.min() - 1e-3
+    wmax = 0.0
+    for j in range(out.shape[1]):
+        s_prev = -1.0
+        for i in range(spans[j, 0], spans[j, 1]):
+            rx, ry, rz = rays[0, j, i], rays[1, j, i], rays[2, j, i]
+            dx = rot[0, 0] * rx + rot[0, 1] * ry + rot[0, 2] * rz
+            dy = rot[1, 0] * rx + rot[1, 1] * ry + rot[1, 2] * rz
+            dz = rot[2, 0] * rx + rot[2, 1] * ry + rot[2, 2] * rz
+            # G(s) = sigma (z - w) along the ray: < 0 at the camera, > 0 past the deepest surface
+            # point (w_far); Newton's method, kept inside that bracket by bisection.
+            ok = False
+            x = y = r = dw = 0.0
+            if sigma * dz > 1e-9:
+                lo = 0.0
+                hi = (w_far - org[2]) / dz
+                s = s_prev if lo < s_prev < hi else min(max(-org[2] / dz, 0.0), hi)   # neighbour / plane
+                for _ in range(60):
+                    x = org[0] + s * dx - lx
+                    y = org[1] + s * dy - ly
+                    r = math.sqrt(x * x + y * y)
+                    tk = min(r * inv_step, nl - 1e-6)
+                    k = int(tk)
+                    f = tk - k
+                    w = lut_w[k] + (lut_w[k + 1] - lut_w[k]) * f
+                    dw = lut_d[k] + (lut_d[k + 1] - lut_d[k]) * f
+                    g = sigma * (org[2] + s * dz - w)
+                    gp = sigma * (dz - dw * (x * dx + y * dy) / max(r, 1e-12))
+                    if g < 0.0:
+                        lo = s
+                    else:
+                        hi = s
+                    sn = s - g / gp if gp > 0.0 else lo - 1.0
+                    if not lo < sn < hi:
+                        sn = 0.5 * (lo + hi)
+                    done = abs(sn - s) < 1e-7 or hi - lo < 1e-7
+                    s = sn
+                    if done:
+                        ok = True
+                        break
+            if not ok:
+                out[0, j, i] = -1e9
+                out[1, j, i] = -1e9
+                s_prev = -1.0
+                if with_shade:
+                    shade[j, i] = 0.0
+                    sgrid[0, j, i] = 0.0
+                    sgrid[1, j, i] = 0.0
+                    sgrid[2, j, i] = 0.0
+                continue
+            s_prev = s
+            out[0, j, i] = aff[0] * (org[0] + s * dx) + aff[1]
+            out[1, j, i] = aff[2] * (org[1] + s * dy) + aff[3]
+            if with_shade:
+                rr = max(r, 1e-12)
+                wx = dw * x / rr
+                wy = dw * y / rr
+                cs = sigma * (dz - dx * wx - dy * wy) / math.sqrt(1.0 + wx * wx + wy * wy)
+                wgt = 0.0
+                if cs > 1e-3:
+                    e = e_ref * cs / (s * s)
+                    shade[j, i] = math.floor(min(amb + e ** inv_gamma, shade_max) * 128.0) / 128.0
+                    wgt = w_glint * e
+                else:
+                    shade[j, i] = 0.0
+                sgrid[0, j, i] = sigma * wx
+                sgrid[1, j, i] = sigma * wy
+                sgrid[2, j, i] = wgt
+                wmax = max(wmax, wgt)
+    return wmax
+
+
 def _spans(mask: np.ndarray) -> np.ndarray:
     """Per row: [first, last + 1) of the set pixels of a row-convex ``mask`` ((0, 0) for empty rows)."""
     out = np.zeros((mask.shape[0], 2), np.int64)
@@ -977,7 +1130,9 @@ class Renderer:
 
     ``cam``: intrinsics and distortion (use :func:`endoscope_camera` for the usual distorted
     camera); ``settings``: :class:`RenderSettings`; ``target``: the textured plane (default:
-    procedural mucosa from ``seed``, 0.2 m x 0.2 m); ``seed``: sensor noise (and default texture).
+    procedural mucosa from ``seed``, 0.2 m x 0.2 m); ``seed``: sensor noise (and default texture);
+    ``surface``: the tissue's shape (default the plane; ``kind = "folds"``: the texture lies on a
+    lumen with folds that deforms with ``render(time_s=)``, see :class:`SurfaceParams`).
 
     A renderer owns preallocated work buffers: use one renderer per thread.
     """
@@ -989,9 +1144,10 @@ class Renderer:
     _LUT = 4096  # entries of the cos^(3/gamma) table
 
     def __init__(self, cam: CameraParams, settings: RenderSettings | None = None,
-                 target: PlanarTarget | None = None, *, seed: int = 0) -> None:
+                 target: PlanarTarget | None = None, *, seed: int = 0, surface: SurfaceParams | None = None) -> None:
         self.cam = validate(cam)
         self.settings = validate(settings or RenderSettings())
+        self.surface = validate(surface or SurfaceParams())
         self._rng = np.random.default_rng(seed)
         self._build_maps()
         self._build_noise()
@@ -1100,10 +1256,16 @@ class Renderer:
         self._blur_acc = np.zeros(4 * bw, f32)
         self._shifts = np.zeros((s.max_subframes, -(-bh // self._TILE[0]), -(-bw // self._TILE[1]), 2))
         self._mid = np.zeros((bh + 2 * mg, we, 4), f32)               # mid-exposure image + margin
-        self._iota = np.arange(we + 16, dtype=f32)
         self._pspans_ext = np.zeros((bh + 2 * mg, 2), np.int64)
         self._pspans_ext[mg:mg + bh] = self._pspans + mg
         self._espans = np.zeros_like(self._pspans_ext)
+        self._espans_full = np.zeros_like(self._pspans_ext)
+        self._region_cache: dict[tuple, tuple] = {}
+        self._iota = np.arange(we + 16, dtype=f32)
+        rp = 0.7 * r                          # where _image_motion_px looks (normalised rays)
+        px = np.array([[0, 0], [rp, 0], [-rp, 0], [0, rp], [0, -rp]], float) + [cam.cx, cam.cy]
+        self._motion_probes = np.column_stack([(px[:, 0] - cam.cx) / cam.fx, (px[:, 1] - cam.cy) / cam.fy,
+                                               np.ones(len(px))])
         self._shade_c = np.zeros((ch, cw), f32)
         self._cs_row = np.zeros(cw, f32)
         # coarse cells the upsampled shade of P reads (+1 cell)
@@ -1125,6 +1287,77 @@ class Renderer:
         self._zero_noise = np.zeros((1, 3 * bw), np.int8)
         g = np.linspace(0.0, 1.0, self._LUT + 1)
         self._cos_lut = g ** (3.0 / s.gamma)                        # cos^3 irradiance -> display gamma
+        # Surfaces that are not planes: texel coordinates per sub-pose, glint slopes and weights on
+        # the coarse grid (allocated here, small); the empty ones stand for "none" in the kernels.
+        self._grids = np.zeros((s.max_subframes, 2, ch, cw), f32)
+        self._grid_mid = np.zeros((2, ch, cw), f32)
+        self._sgrid = np.zeros((3, ch, cw), f32)
+        self._srows = np.zeros((3, w2), f32)
+        self._scratch["grow"] = np.zeros((2, bw), f32)
+        self._no_grids = np.zeros((0, 2, 1, 1), f32)
+        self._no_sgrid = np.zeros((0, 1, 1), f32)
+        self._no_shade = np.zeros((0, 1), f32)
+
+    def _region_spans(self, region: Sequence[float] | None) -> tuple[np.ndarray, ...]:
+        """Row spans (A, B, S, H, P, P on the motion-blur margin's rows and C, see :meth:`_build_maps`)
+        restricted to what the pixels of ``region`` (x0, y0, x1, y1 image px) depend on: each
+        region is the previous one's grown by the reach of the step that reads it (blur radius,
+        half resolution, Sobel), with a few pixels to spare; outside them the buffers keep stale
+        values nobody reads. None: the whole field of view."""
+        if region is None:
+            return (self._aspans, self._bspans, self._sspans, self._hspans, self._pspans, self._pspans_ext,
+                    self._cspans)
+        x0, y0, x1, y1 = (float(v) for v in region)
+        if not all(map(math.isfinite, (x0, y0, x1, y1))):
+            raise ValueError(f"region = {tuple(region)}; needs 4 finite pixel coordinates (x0, y0, x1, y1)")
+        # Widened to multiples of 16 px: whole vectors, and a moving region's spans repeat (cached).
+        key = (math.floor(x0 / 16), math.floor(y0 / 16), math.ceil(x1 / 16), math.ceil(y1 / 16))
+        got = self._region_cache.get(key)
+        if got is None:
+            if len(self._region_cache) >= 256:
+                self._region_cache.clear()
+            got = self._region_cache[key] = self._clip_spans(*(16 * k for k in key))
+        return got
+
+    def _clip_spans(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, ...]:
+        """:meth:`_region_spans` of the region (x0, y0, x1, y1) (image px)."""
+        bx, by = self._box[:2]
+        rb = (len(self._kw) - 1) // 2
+
+        def clip(spans: np.ndarray, rect: tuple[int, int, int, int], step: int) -> tuple[np.ndarray, tuple]:
+            """``spans`` inside ``rect`` (x0, y0, x1, y1; columns widened to multiples of ``step``),
+            and that rect."""
+            xa, ya, xb, yb = rect
+            xa, xb = xa // step * step, -(-xb // step) * step
+            out = np.zeros_like(spans)
+            ya, yb = max(ya, 0), min(yb, len(spans))
+            if yb > ya:
+                a = np.maximum(spans[ya:yb, 0], xa)
+                b = np.minimum(spans[ya:yb, 1], xb)
+                ok = b > a
+                out[ya:yb, 0] = np.where(ok, a, 0)
+                out[ya:yb, 1] = np.where(ok, b, 0)
+            return out, (xa, ya, xb, yb)
+
+        def grow(r: tuple, g: int, k: int = 1) -> tuple[int, int, int, int]:
+            """``r`` grown by ``g`` px, then k x smaller (outwards)."""
+            return ((r[0] - g) // k, (r[1] - g) // k, -(-(r[2] + g) // k), -(-(r[3] + g) // k))
+
+        # A: the region (whole vectors); B: + blur radius; S (half resolution): what the glints
+        # upsampled x2 and blurred at A read; H (half resolution): + 1 for the Sobel; P: all of B
+        # + blur radius and of H at full resolution.
+        A, ra = clip(self._aspans, (x0 - bx, y0 - by, x1 - bx, y1 - by), 16)
+        B, rb_ = clip(self._bspans, grow(ra, rb), 16)
+        S, rs = clip(self._sspans, grow(ra, rb + 3, 2), 1)     # (tight: P, the costly pass, covers H)
+        H, rh = clip(self._hspans, grow(rs, 1), 1)
+        P, rp = clip(self._pspans, (min(rb_[0] - rb, 2 * rh[0]), min(rb_[1] - rb, 2 * rh[1]),
+                                   max(rb_[2] + rb, 2 * rh[2]), max(rb_[3] + rb, 2 * rh[3])), 16)
+        mg = self._MB
+        PE = np.zeros_like(self._pspans_ext)
+        PE[mg:mg + len(P)] = P + mg
+        # C (coarse grid): the shade cells P + the motion-blur margin upsample from.
+        C, _ = clip(self._cspans, grow(grow(rp, mg + self._Q, self._Q), 1), 1)
+        return A, B, S, H, P, PE, C
 
     def _build_noise(self) -> None:
         """A small bank of seeded noise images; each frame takes a random window of one of them."""
@@ -1151,6 +1384,12 @@ class Renderer:
                 levels.append(cv2.pyrDown(levels[-1]))
         self.target = target
         self._levels = levels
+        # A surface's radial profile is tabulated out to the farthest texture corner (+ 5 cm).
+        off = self.surface.lumen_offset
+        r_max = math.hypot(target.size_m[0] / 2 + abs(off[0]), target.size_m[1] / 2 + abs(off[1])) + 0.05
+        self._lut_r = np.linspace(0.0, r_max, self._LUT_R + 1)
+        self._lut_step = r_max / self._LUT_R
+        self._lut_key: tuple | None = None
         self._padded: dict[int, tuple] = {}                          # built on first use
         h = tex[..., 3].astype(np.float32)
         gx = cv2.Sobel(h, cv2.CV_32F, 1, 0, ksize=3) / 8.0
@@ -1188,10 +1427,12 @@ class Renderer:
         return np.array([[k * w / sw, 0.0, k * (w / 2 - 0.5)], [0.0, k * h / sh, k * (h / 2 - 0.5)], [0.0, 0.0, 1.0]])
 
     def truth(self, camera_pose: np.ndarray, target_pose: np.ndarray,
-              point_m: Sequence[float] | None = None) -> np.ndarray:
-        """Pixel position (x, y; with distortion) of a plane point (default: the selected point)."""
+              point_m: Sequence[float] | None = None, time_s: float = 0.0) -> np.ndarray:
+        """Pixel position (x, y; with distortion) of a plane point (default: the selected point), on
+        the surface as it is at ``time_s`` (s)."""
         p = self.target.selected_point_m if point_m is None else point_m
-        world = np.asarray(target_pose, float) @ np.array([p[0], p[1], 0.0, 1.0])
+        w = 0.0 if self.surface.flat else float(self.surface.height(p[0], p[1], time_s))
+        world = np.asarray(target_pose, float) @ np.array([p[0], p[1], w, 1.0])
         return project(world_to_camera(np.asarray(camera_pose, float), world[:3]), self.cam)
 
     def _texel_homography(self, rel: np.ndarray, level: int) -> np.ndarray:
@@ -1213,6 +1454,24 @@ class Renderer:
             out[k] = self._texel_homography(rel, 0)
         return out
 
+    _LUT_R = 4096  # entries of a surface's radial profile table
+
+    def _surface_args(self, rel: np.ndarray, time_s: float, level: int, spans: np.ndarray) -> tuple:
+        """The first arguments of :func:`_surface_grid` for the target seen at ``rel`` (target in
+        camera, 4x4) at scene time ``time_s``, in level-``level`` texels, over the coarse ``spans``."""
+        surf = self.surface
+        key = float(time_s)
+        if self._lut_key != key:                  # the profile at this time (shared by the sub-poses)
+            w, d = surf.profile(self._lut_r, time_s)
+            self._lut = (np.ascontiguousarray(w), np.ascontiguousarray(d))
+            self._lut_key = key
+        tex = self._texel_from_plane(level)
+        aff = np.array([tex[0, 0], tex[0, 2], tex[1, 1], tex[1, 2]])
+        rot = np.ascontiguousarray(rel[:3, :3].T)
+        org = -rot @ rel[:3, 3]
+        return (self._rays_c, spans, rot, org, self._lut[0], self._lut[1], self._lut_step,
+                float(surf.lumen_offset[0]), float(surf.lumen_offset[1]), aff)
+
     def _centre_jacobian(self, hom0: np.ndarray) -> np.ndarray:
         """2x2 d(level-0 texel) / d(pixel) at the image centre (one-pixel differences) from the
         normalised-ray -> level-0 texel homography ``hom0``."""
@@ -1223,24 +1482,24 @@ class Renderer:
 
     def _image_motion_px(self, rel0: np.ndarray, rel1: np.ndarray) -> float:
         """Largest image motion (px) of plane points seen at five places in the field of view."""
-        r = 0.7 * self.settings.fov_radius_px
-        px = np.array([[0, 0], [r, 0], [-r, 0], [0, r], [0, -r]], float) + [self.cam.cx, self.cam.cy]
-        n = np.column_stack([(px[:, 0] - self.cam.cx) / self.cam.fx, (px[:, 1] - self.cam.cy) / self.cam.fy,
-                             np.ones(len(px))])
-        h0 = np.column_stack([rel0[:3, 0], rel0[:3, 1], rel0[:3, 3]])
-        h1 = np.column_stack([rel1[:3, 0], rel1[:3, 1], rel1[:3, 3]])
-        m = h1 @ np.linalg.inv(h0)
-        q = n @ m.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = q[:, :2] / q[:, 2:3]
-        d = np.hypot(*(q - n[:, :2]).T) * self.cam.fx
-        return float(np.nanmax(d)) if np.all(np.isfinite(d)) else float("inf")
+        n = self._motion_probes
+        cols = [0, 1, 3]
+        try:      # q = n (H1 H0^-1)^T with H = the plane's (x, y, 1) -> ray homography
+            q = n @ np.linalg.solve(rel0[:3, cols].T, rel1[:3, cols].T)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        w = q[:, 2]
+        if not np.all(np.abs(w) > 1e-300):
+            return float("inf")
+        d = np.hypot(q[:, 0] / w - n[:, 0], q[:, 1] / w - n[:, 1]) * self.cam.fx
+        return float(d.max()) if np.all(np.isfinite(d)) else float("inf")
 
     # ----------------------------------------------------------------- render
     def render(self, camera_pose: np.ndarray, target_pose: np.ndarray, *,
                camera_pose_end: np.ndarray | None = None, target_pose_end: np.ndarray | None = None,
                light_gain: float = 1.0, occluders: Sequence[np.ndarray] = (),
-               point_m: Sequence[float] | None = None) -> Frame:
+               point_m: Sequence[float] | None = None, region: Sequence[float] | None = None,
+               time_s: float = 0.0) -> Frame:
         """Render one frame.
 
         ``camera_pose``, ``target_pose``: 4x4 poses in the world frame (m) at the start of the
@@ -1248,10 +1507,17 @@ class Renderer:
         light (lighting change). ``occluders``: polygons (N, 2) in image pixels drawn in front of
         the tissue (e.g. an instrument). ``point_m``: plane point (m) whose ground truth is
         reported (default: the target's ``selected_point_m``). Ground truth is taken at
-        mid-exposure.
+        mid-exposure. ``region``: (x0, y0, x1, y1) image pixels: only these (and a few more, to
+        whole vectors) are rendered, with the same values as in the whole frame; the rest stays
+        black. For a consumer that reads only part of the frame (None: the whole frame).
+        ``time_s``: the scene time (s) at mid-exposure, which shapes a deforming surface (its shape
+        is held over the exposure: it moves < 0.1 mm in one); the plane ignores it.
         """
         if not (light_gain >= 0 and math.isfinite(light_gain)):
             raise ValueError(f"light_gain = {light_gain!r}; allowed: [0, inf)")
+        if not math.isfinite(time_s):
+            raise ValueError(f"time_s = {time_s!r}; must be a finite time (s)")
+        folded = not self.surface.flat
         s, cam = self.settings, self.cam
         cp0 = np.asarray(camera_pose, float)
         tp0 = np.asarray(target_pose, float)
@@ -1270,9 +1536,10 @@ class Renderer:
         if abs(float(rel_mid[:3, 2] @ rel_mid[:3, 3])) < 1e-6 or (moving and abs(float(rel1[:3, 2] @ rel1[:3, 3])) < 1e-6) \
                 or abs(float(rel0[:3, 2] @ rel0[:3, 3])) < 1e-6:
             # The camera lies in the target plane: nothing sensible to see (black frame).
-            truth = self.truth(cp_mid, tp_mid, point_m)
+            truth = self.truth(cp_mid, tp_mid, point_m, time_s)
             return Frame(np.zeros((cam.height, cam.width, 3), np.uint8), truth, False, False, n_sub)
 
+        A, B, S, H, P, PE, C = self._region_spans(region)
         hom0 = self._texel_homography(rel_mid, 0)
         jac = self._centre_jacobian(hom0)
         tpp = float(np.sqrt(abs(np.linalg.det(jac))))
@@ -1288,7 +1555,7 @@ class Renderer:
         mid_hom = lscale @ hom0
         mats = mid_hom.astype(np.float32).reshape(1, 9)
         image_blur = False
-        if n_sub > 1:
+        if n_sub > 1 and not folded:     # (a surface is sampled at each sub-pose: _surface_grids)
             inv_mid = np.linalg.inv(mid_hom)
             reach = math.inf
             homs = lscale @ self._subpose_homographies(cp0, cp1, tp0, tp1, (np.arange(n_sub) + 0.5) / n_sub)
@@ -1310,25 +1577,43 @@ class Renderer:
         amb = s.ambient * gain if d_perp > 0 else 0.0
         spec_on = s.specular_strength > 0 and self._slope_per_grad > 0
         w_scale = s.specular_strength if spec_on else 0.0   # x e0 below: glints scale with the light once, fall off as cos/d^2
-        cmax = _light_grid(self._rays_c, self._cspans, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0, self._cos_lut,
-                           self._shade_c, self._cs_row)
-        wmax = w_scale * e0 * cmax ** 3                                 # largest glint weight
+        if folded:   # texels, shade and glint grids at mid-exposure; texels at each sub-pose if blurred
+            grids, sgrid = self._grids[:n_sub], self._sgrid
+            wmax = _surface_grid(*self._surface_args(rel_mid, time_s, level, C),
+                                 grids[0] if n_sub == 1 else self._grid_mid, self._shade_c, sgrid,
+                                 gain * s.light_ref_distance_m ** 2, s.ambient * gain, 1.0 / s.gamma, 255.0 / 128.0,
+                                 w_scale)
+            for k, f in enumerate((np.arange(n_sub) + 0.5) / n_sub if n_sub > 1 else ()):
+                rel = self._plane_in_camera(interpolate_pose(cp0, cp1, f), interpolate_pose(tp0, tp1, f))
+                _surface_grid(*self._surface_args(rel, time_s, level, C), grids[k], self._no_shade, self._no_sgrid,
+                              0.0, 0.0, 1.0, 1.0, 0.0)
+        else:
+            grids, sgrid = self._no_grids, self._no_sgrid
+            cmax = _light_grid(self._rays_c, self._cspans, C, nrm, amb, e0 ** (1.0 / s.gamma), 255.0 / 128.0,
+                               self._cos_lut, self._shade_c, self._cs_row)
+            wmax = w_scale * e0 * cmax ** 3                             # largest glint weight
 
         # Texture sampling x shade -> planes B, G, R, height.
         tex, rowb, th, tw = self._padded_level(level)
         sc = self._scratch
         mg = self._MB
-        scratch = (self._iota, sc["rxs"], sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"])
+        scratch = (self._iota, sc["rxs"], sc["rys"], sc["fus"], sc["fvs"], sc["acc"], sc["srow"], sc["crow"], sc["ext"],
+                   grids, sc["grow"])
         if image_blur:
-            _dilate_spans(self._pspans_ext, int(math.ceil(reach)) + 2, self._mid.shape[1], self._espans)
+            r_ext = int(math.ceil(reach)) + 2
+            _dilate_spans(PE, r_ext, self._mid.shape[1], self._espans)
+            full = self._espans
+            if region is not None:                  # rays computed as in the whole frame
+                full = self._espans_full
+                _dilate_spans(self._pspans_ext, r_ext, self._mid.shape[1], full)
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          0, self._ray0_ext, self._espans, self._shade_c, self._Q, mg, self._mid, self._hplane, True,
-                          *scratch)
-            _motion_blur(self._mid, mg, shifts, self._TILE[1], self._TILE[0], self._pspans, self._bgr,
+                          0, self._ray0_ext, self._espans, full, self._shade_c, self._Q, mg, self._mid, self._hplane,
+                          True, *scratch)
+            _motion_blur(self._mid, mg, shifts, self._TILE[1], self._TILE[0], P, self._bgr,
                          self._hplane, self._blur_acc)
         else:
             _sample_shade(tex, rowb, np.float32(tw * _FIX), np.float32(th * _FIX), mats, self._rx_map, self._ry_map,
-                          mg, self._ray0, self._pspans, self._shade_c, self._Q, 0, self._bgr, self._hplane,
+                          mg, self._ray0, P, self._pspans, self._shade_c, self._Q, 0, self._bgr, self._hplane,
                           False, *scratch)
 
         # Glints (half resolution).
@@ -1338,12 +1623,13 @@ class Renderer:
             if thresh > 0:
                 # Height gradient per image pixel -> slope along texture x, y: grad_texel = J^-T grad_px.
                 c = np.linalg.inv(jac).T * self._slope_per_grad
-                use_spec = _specular_half(self._hplane, self._hspans, self._sspans, self._rays_h, nrm, rmat[:, 0],
+                use_spec = _specular_half(self._hplane, H, S, self._rays_h, nrm, rmat[:, 0],
                                           rmat[:, 1], w_scale * e0, c.ravel(), 0.5 * s.specular_exponent, thresh,
-                                          self._hmap, self._t_row, self._spec, self._lit_rng)
+                                          self._hmap, self._t_row, self._spec, self._lit_rng, sgrid, self._srows,
+                                          sc["crow"], sc["ext"])
         if occluders:
             if use_spec:
-                _add_specular(self._bgr, self._spec, self._bspans, self._hv, self._srow_f)
+                _add_specular(self._bgr, self._spec, B, self._hv, self._srow_f)
                 use_spec = False
             self._draw_occluders(self._bgr, occluders, gain)
 
@@ -1355,11 +1641,11 @@ class Renderer:
             noise, oy, ox = self._zero_noise, 0, 0
         out = np.zeros((cam.height, cam.width, 3), np.uint8)
         x0, y0 = self._box[:2]
-        _finish(self._bgr, self._spec, self._lit_rng, use_spec, self._kw, self._aspans, self._alpha3, noise, oy, ox,
+        _finish(self._bgr, self._spec, self._lit_rng, use_spec, self._kw, A, self._alpha3, noise, oy, ox,
                 bool(self._noise), out, y0, x0, self._sring, self._tags, self._srng, self._colpad, self._hacc,
                 self._srow_f, self._hv)
 
-        truth = self.truth(cp_mid, tp_mid, point_m)
+        truth = self.truth(cp_mid, tp_mid, point_m, time_s)
         occluded = bool(np.all(np.isfinite(truth)) and any(
             cv2.pointPolygonTest(np.asarray(p, np.float32).reshape(-1, 1, 2), (float(truth[0]), float(truth[1])), False) >= 0
             for p in occluders))
