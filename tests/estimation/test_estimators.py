@@ -106,8 +106,9 @@ def test_backlash_width_within_20_percent_after_a_few_reversals(width):
     m = np.column_stack([0.3 * np.sin(2 * np.pi * t / 6.0), 0.2 * np.sin(2 * np.pi * t / 8.0 + 0.5)])
     j = np.diag([-500.0, -500.0])
     tip = np.column_stack([play(m[:, 0], width), play(m[:, 1], width)])
-    x = tip @ j.T + np.random.default_rng(5).normal(0, 0.5, tip.shape)
-    est = BacklashEstimator(threshold_px=3.0)
+    drift = np.column_stack([40.0 * np.sin(0.3 * t), 25.0 * np.cos(0.2 * t)])          # the target moves, smoothly
+    x = tip @ j.T + drift + np.random.default_rng(5).normal(0, 0.5, tip.shape)
+    est = BacklashEstimator()
     for k in range(t.size):
         est.add(m[k], x[k], j)
     assert est.reversals >= 4
