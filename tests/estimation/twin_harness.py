@@ -9,6 +9,8 @@ import numpy as np
 
 from targetlock.controllers.pi import History
 from targetlock.estimation import BacklashEstimator, DelayEstimator, JacobianEstimator, prior_jacobian
+from targetlock.estimation.probe import nominal_width
+from targetlock.model.endoscope import EndoscopeParams
 from targetlock.model.camera import CameraParams, project, world_to_camera
 from targetlock.model.kinematics import tip_pose
 from targetlock.model.twin import TwinConfig, twin_config
@@ -17,6 +19,7 @@ from targetlock.rig.simulated import ObservationNoise, SimulatedRig
 NOMINAL_TIP_GAIN = 90.0 / 110.0       # the controller's assumed handle -> tip gain (ControllerConfig)
 STAMP_LATENCY = 0.4                   # s, the latency the rig is told (nominal knowledge)
 CONTROL_DT = 0.02                     # s, the loop's 50 Hz
+NOMINAL_WIDTH = nominal_width(EndoscopeParams())   # rad, the backlash the nominal scope has (knowledge)
 
 
 def make_twin(preset: str, distance: float, *, latency: float, jitter: float = 0.0, path: str = "ellipse",
@@ -110,6 +113,7 @@ class Lock:
                  probe=None, truth: SweepTruth | None = None, fixed_width: float | None = None,
                  fixed_delay: float | None = None, scheduled: bool = True) -> None:
         self.fixed_width, self.fixed_delay, self.scheduled = fixed_width, fixed_delay, scheduled
+        self.probe_start = 0.0
         self.rig = SimulatedRig(twin, noise, stamp_latency=STAMP_LATENCY)
         self.rig.drives.home()
         self.twin, self.truth, self.probe = twin, truth, probe
@@ -132,7 +136,7 @@ class Lock:
     def width(self, motor):
         if self.fixed_width is not None:
             return self.fixed_width
-        return self.backlash.width(float(np.abs(motor).sum())) if self.backlash.reversals >= 3 else 0.048
+        return self.backlash.width(float(np.abs(motor).sum())) if self.backlash.reversals >= 3 else NOMINAL_WIDTH
 
     def run(self, seconds: float) -> Trace:
         rig = self.rig
@@ -148,7 +152,7 @@ class Lock:
             for obs in rig.observations.poll(now):
                 if obs.valid:
                     self._observe(obs)
-            offset = self.probe.offset(now) if self.probe is not None else 0.0
+            offset = self.probe.offset(now - self.probe_start) if self.probe is not None else 0.0
             lo, hi = rig.drives.limits
             sp = np.clip(np.rint((self.command + offset) / rig.drives.rad_per_tick), lo, hi)
             rig.drives.send_setpoints(sp)

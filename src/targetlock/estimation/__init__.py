@@ -10,12 +10,18 @@ output stays within stated physical limits whatever the input (noise, dropped fr
 * :class:`DelayEstimator` — the delay between the motor motion and the image motion it causes,
   relative to the frames' capture time stamps (a wrongly stamped or unknown video latency);
 * :class:`BacklashEstimator` — the motor travel lost at each reversal before the image follows
-  (deadband / backlash width) and its growth with bending.
+  (deadband / backlash width) and its growth with bending; :func:`nominal_width` its prior;
+* :class:`DepthEstimator` — the target depth, from the Jacobian's size and (where observable) the
+  tracker's scale;
+* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging.
 """
 from __future__ import annotations
 
 from .backlash import BacklashEstimator
 from .delay import DelayEstimator
+from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
+from .probe import ProbeSignal, nominal_width
 
-__all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "BacklashEstimator"]
+__all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "BacklashEstimator", "DepthEstimator",
+           "ProbeSignal", "nominal_width"]

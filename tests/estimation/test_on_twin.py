@@ -1,0 +1,117 @@
+"""The estimators on the full twin (SimulatedRig), fed as ``controllers/adaptive.py`` feeds them, against
+the twin's truth measured from the twin itself (oracle, see twin_harness.py):
+
+* delay truth: true latency − stamped latency (the rig stamps with the nominal 0.4 s) + the tip's lag
+  behind the measured handle (first order, μ_f/(c²K_c + K_tip) = 45 ms);
+* depth truth: the scene's distance;
+* backlash truth: the handle travel between the rising and falling branch of a slow triangle sweep.
+
+Excitation: the lock engages on a static target with the engage probe (ProbeSignal); tracking alone
+gives the estimators little (the static target gives nothing at all, tested).
+"""
+import math
+
+import numpy as np
+import pytest
+
+from targetlock.estimation import DepthEstimator, ProbeSignal, nominal_width
+from targetlock.model.camera import CameraParams
+from targetlock.model.endoscope import EndoscopeParams
+from targetlock.rig.simulated import ObservationNoise
+
+from .twin_harness import NOMINAL_TIP_GAIN, NOMINAL_WIDTH, STAMP_LATENCY, Lock, make_twin, nominal_prior, sweep_truth
+
+J_NEAR = float(np.abs(nominal_prior(np.zeros(2), 0.01)).max())     # px/rad at 1 cm, nominal
+
+
+def probe():
+    return ProbeSignal.for_scope(NOMINAL_WIDTH, J_NEAR, max_px=100.0)
+
+
+def delay_truth(twin, lag):
+    return twin.camera.latency - STAMP_LATENCY + 0.5 * twin.camera.latency_jitter + lag
+
+
+@pytest.mark.parametrize("preset", ["calibrated", "looped-shaft"])
+def test_nominal_backlash_prior_matches_the_twins_hysteresis_within_20_percent(preset):
+    """The prior the controller can compute from its assumed scope is the twin's reversal width
+    (friction turned around plus slack), not the slack alone (which is 4× smaller)."""
+    twin = make_twin(preset, 0.05, latency=0.4)
+    truth = sweep_truth(twin)
+    assert nominal_width(twin.endoscope, 0.3) == pytest.approx(truth.width.mean(), rel=0.2)
+    assert truth.width.min() > 3 * 2 * max(twin.endoscope.cable_slack, 0) / twin.endoscope.handle_radius
+
+
+NOT_CROSSED = pytest.mark.xfail(strict=True, reason="known gap: the probe's amplitude, sized from the nominal "
+                                 "scope's width (0.24 rad), does not cross this scope's backlash (0.24-0.41 rad) "
+                                 "far enough to move the image; the delay is then not observable")
+
+
+@pytest.mark.parametrize("preset,distance,latency", [("calibrated", 0.05, 0.55), ("calibrated", 0.015, 0.3),
+                                                     pytest.param("looped-shaft", 0.05, 0.25, marks=NOT_CROSSED),
+                                                     pytest.param("uncalibrated", 0.12, 0.5, marks=NOT_CROSSED)])
+def test_engage_probe_finds_the_residual_delay_within_one_frame(preset, distance, latency):
+    twin = make_twin(preset, distance, latency=latency, path="static")
+    truth = delay_truth(twin, sweep_truth(twin).tip_lag)
+    with_probe = Lock(twin, probe=probe(), loop_gain=0.8, scheduled=False)
+    trace = with_probe.run(5.0)
+    assert with_probe.delay.delay == pytest.approx(truth, abs=1.0 / twin.camera.fps)
+    assert all(with_probe.delay.lo <= d <= with_probe.delay.hi for d in trace.delay)
+    # Without the probe a lock at rest on a static target gives the delay no information: unchanged.
+    without = Lock(twin, loop_gain=0.8, scheduled=False)
+    without.run(5.0)
+    assert without.delay.delay == 0.0 and without.delay.estimates == 0
+
+
+@pytest.mark.parametrize("distance", [0.015, 0.10])
+def test_depth_from_the_jacobian_after_the_probe_within_35_percent(distance):
+    """(a) inherits the Jacobian's error after a 2 s probe (measured: 1.95 cm for 1.5, 8.7 cm for 10)."""
+    twin = make_twin("calibrated", distance, latency=0.4, path="static")
+    lock = Lock(twin, probe=probe(), loop_gain=0.8, scheduled=False)
+    lock.run(5.0)
+    depth = DepthEstimator(camera=CameraParams(), tip_gain=NOMINAL_TIP_GAIN, tip_length=0.12, n_elements=30)
+    d = depth.from_jacobian(lock.jac.j, lock.rig.handle_angles())
+    assert d == pytest.approx(distance, rel=0.35)
+    assert depth.observable_j
+
+
+def test_estimates_stay_bounded_under_noise_drops_and_outliers_on_the_twin():
+    """Noise 1.5 px, 10 % dropped frames, 5 % outliers of 150 px, 20 ms jitter, a moving target: every
+    estimate within its stated bounds at every frame; the delay still within two frames."""
+    twin = make_twin("calibrated", 0.05, latency=0.55, jitter=0.02, size=0.5)
+    noise = ObservationNoise(noise_px=1.5, drop_probability=0.1, outlier_probability=0.05, seed=3)
+    lock = Lock(twin, noise=noise, probe=probe(), loop_gain=0.8, scheduled=False)
+    trace = lock.run(8.0)
+    for j in trace.j:
+        s = np.linalg.svd(j, compute_uv=False)
+        assert lock.jac.sv_min - 1e-6 <= s.min() and s.max() <= lock.jac.sv_max + 1e-6
+        assert np.linalg.det(j) > 0 and j[0, 0] < 0 and j[1, 1] < 0
+    assert all(lock.delay.lo <= d <= lock.delay.hi for d in trace.delay)
+    assert all(0.0 <= w <= lock.backlash.max_width for w in trace.width)
+    assert lock.jac.rejected > 0
+    assert lock.delay.delay == pytest.approx(delay_truth(twin, 0.045), abs=2.0 / twin.camera.fps)
+
+
+def test_probe_is_bounded_zero_mean_and_ends_at_zero():
+    p = ProbeSignal.for_scope(0.24, 1742.0, max_px=100.0)
+    t = np.arange(-0.5, 3.0, 0.001)
+    off = np.array([p.offset(x) for x in t])
+    assert np.max(np.abs(off)) <= p.amplitude + 1e-12 and p.amplitude <= 0.5 * 0.24 + 100.0 / 1742.0 + 1e-12
+    inside = (t >= 0) & (t < p.duration)
+    assert np.abs(off[inside].mean(axis=0)).max() < 1e-3 * p.amplitude + 1e-9
+    assert np.all(off[~inside] == 0.0) and p.done(2.0) and not p.done(1.9)
+    assert np.max(np.abs(np.diff(off, axis=0))) / 0.001 <= 1.6 + 1e-6     # within the drive's rate limit
+    with pytest.raises(ValueError, match="duration"):
+        ProbeSignal(0.1, duration=3.0)
+    with pytest.raises(ValueError, match="rad/s"):
+        ProbeSignal(0.9, duration=1.0)
+
+
+def test_depth_estimator_is_bounded_under_garbage():
+    est = DepthEstimator(camera=CameraParams(), tip_gain=NOMINAL_TIP_GAIN, tip_length=0.12, n_elements=30,
+                         use_scale=True)
+    rng = np.random.default_rng(7)
+    for k in range(300):
+        j = np.diag([-1.0, -1.0]) * rng.choice([1.0, 1e4, 1e9, np.nan])
+        d = est.add(rng.normal(0, 0.5, 2), rng.normal(0, 100, 2), float(rng.choice([1.0, np.nan, 1e9, 0.9])), j)
+        assert est.lo <= d <= est.hi and math.isfinite(d)
