@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from targetlock.controllers.pi import History
-from targetlock.estimation import BacklashEstimator, DelayEstimator, JacobianEstimator, prior_jacobian
+from targetlock.estimation import BacklashFitEstimator, DelayFitEstimator, JacobianEstimator, prior_jacobian
 from targetlock.estimation.probe import nominal_width
 from targetlock.model.endoscope import EndoscopeParams
 from targetlock.model.camera import CameraParams, project, world_to_camera
@@ -122,8 +122,8 @@ class Lock:
         far, near = nominal_prior(m, 0.15), nominal_prior(m, 0.01)
         self.jac = JacobianEstimator(prior, sv_min=0.75 * np.linalg.svd(far, compute_uv=False).min(),
                                      sv_max=1.5 * np.linalg.svd(near, compute_uv=False).max())
-        self.delay = DelayEstimator(initial=0.0)
-        self.backlash = BacklashEstimator()
+        self.delay = DelayFitEstimator(initial=0.0)
+        self.backlash = BacklashFitEstimator()
         self.history = History(3.0, CONTROL_DT)
         self.eff_history = History(3.0, CONTROL_DT)
         self.effective = m.copy()

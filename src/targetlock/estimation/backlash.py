@@ -1,10 +1,16 @@
-"""Backlash / deadband width at motor reversals, per axis, and its growth with bending.
+"""Backlash / deadband width at motor reversals, and its growth with bending.
 
-After a reversal of the motor on an axis the tip (and the image) stays put until the cables are
-taken up again: the handle travel lost is the width of a play operator between the motor and the
-tip. The width is found as the one whose play operator makes the image of the motor motion fit the
+After a reversal of the motor on an axis, the tip (and the image) stays put until the cables are
+taken up again: the motor travel between the reversal and the first image motion the Jacobian
+attributes to that axis is the width at that reversal. Widths are collected with the bend (|motor|
+summed over both axes) at which they occurred, and fitted as width = a + b·bend (least squares,
+clipped to [0, max_width]); with fewer than three reversals the estimate is the median.
+
+:class:`BacklashFitEstimator` (same interface) instead fits the width of a play operator per axis
+(the handle travel lost at a reversal) between the motor and the tip. The width is found as the one whose play operator makes the image of the motor motion fit the
 camera best: over a sliding window of frames, the residual ``x − J·play_w(m)`` is the target's own
-motion (smooth) plus noise, and a wrong width leaves a kink at every reversal (see :mod:`.play`).
+motion (smooth) plus noise, and a wrong width leaves a kink at every reversal (see :mod:`.play`; J is
+fitted per candidate width, so an error of the J handed in does not bias the width).
 A grid of widths per axis (the other axis at its current estimate) is scored by that roughness; an
 axis is updated only when it reversed inside the window by more than the candidate width (else its
 width is not observable) and the minimum is clear. Each accepted window gives a (bend, width) sample
@@ -18,18 +24,83 @@ from collections import deque
 
 import numpy as np
 
-from .play import play, roughness
+from .play import fit_rough, play
 
-__all__ = ["BacklashEstimator"]
+__all__ = ["BacklashEstimator", "BacklashFitEstimator"]
 
 
 class BacklashEstimator:
-    """Bounded estimate of the backlash width (handle rad) per axis, from motor angles and image offsets."""
+    def __init__(self, *, threshold_px: float = 4.0, max_width: float = 0.5, min_travel: float = 0.01,
+                 history: int = 20) -> None:
+        self.threshold_px = threshold_px      # image motion that counts as 'the tip moved' (px)
+        self.max_width = max_width            # rad (handle)
+        self.min_travel = min_travel          # motor travel that counts as a reversal (rad)
+        self.samples: deque[tuple[float, float]] = deque(maxlen=history)   # (bend rad, width rad)
+        self._dir = np.zeros(2)
+        self._turn_motor = np.full(2, np.nan)     # motor where the axis reversed
+        self._turn_image = np.zeros((2, 2))       # image offset at the reversal
+        self._extreme = np.full(2, np.nan)
+
+    def add(self, motor: np.ndarray, offset: np.ndarray, jacobian: np.ndarray, target_motion: np.ndarray | None = None) -> None:
+        """Motor (rad) at a frame's capture time and the frame's offset (px)."""
+        motor = np.asarray(motor, dtype=float)
+        offset = np.asarray(offset, dtype=float)
+        if not (np.all(np.isfinite(motor)) and np.all(np.isfinite(offset))):
+            return
+        for a in range(2):
+            if np.isnan(self._extreme[a]):
+                self._extreme[a] = motor[a]
+                continue
+            move = motor[a] - self._extreme[a]
+            d = np.sign(move)
+            if self._dir[a] == 0 and abs(move) > self.min_travel:
+                self._dir[a] = d
+            if self._dir[a] != 0 and d == self._dir[a]:
+                self._extreme[a] = motor[a]          # still going the same way
+            elif self._dir[a] != 0 and abs(move) > self.min_travel and np.isnan(self._turn_motor[a]):
+                self._turn_motor[a] = self._extreme[a]   # reversed: wait for the image to follow
+                self._turn_image[a] = offset
+            if not np.isnan(self._turn_motor[a]):
+                col = jacobian[:, a]
+                seen = float(np.dot(offset - self._turn_image[a], col) / max(np.linalg.norm(col), 1e-9))
+                travel = motor[a] - self._turn_motor[a]
+                if abs(seen) > self.threshold_px and np.sign(seen) == np.sign(travel):
+                    gain = max(float(np.linalg.norm(col)), 1e-9)     # px per rad along this axis
+                    width = float(np.clip(abs(travel) - self.threshold_px / gain, 0.0, self.max_width))
+                    self.samples.append((float(np.abs(motor).sum()), width))
+                    self._dir[a] = np.sign(travel)
+                    self._extreme[a] = motor[a]
+                    self._turn_motor[a] = np.nan
+                elif abs(travel) > self.max_width:
+                    self._turn_motor[a] = np.nan     # no image motion within the largest width: not a reversal we can use
+                    self._dir[a] = np.sign(travel)
+                    self._extreme[a] = motor[a]
+
+    @property
+    def reversals(self) -> int:
+        return len(self.samples)
+
+    def width(self, bend: float = 0.0) -> float:
+        """Estimated width (handle rad) at the given bend (rad, |motor_x| + |motor_y|); 0 if unknown."""
+        if not self.samples:
+            return 0.0
+        b = np.array([s[0] for s in self.samples])
+        w = np.array([s[1] for s in self.samples])
+        if len(w) < 3 or np.ptp(b) < 0.1:
+            return float(np.median(w))
+        slope, intercept = np.polyfit(b, w, 1)
+        slope = max(float(slope), 0.0)
+        return float(np.clip(intercept + slope * bend, 0.0, self.max_width))
+
+
+class BacklashFitEstimator:
+    """Bounded estimate of the backlash width (handle rad) per axis by the play-operator fit (module
+    docstring, second part); same interface as :class:`BacklashEstimator`, plus :meth:`axis_width`."""
 
     def __init__(self, *, max_width: float = 0.6, step: float = 0.01, window: int = 200, lead: int = 100,
                  every: int = 20, min_travel: float = 0.01, min_depth: float = 0.03, history: int = 30) -> None:
         if not max_width > 0:
-            raise ValueError(f"BacklashEstimator: max_width = {max_width} must be > 0 (handle rad)")
+            raise ValueError(f"BacklashFitEstimator: max_width = {max_width} must be > 0 (handle rad)")
         self.max_width = max_width            # rad (handle)
         self.candidates = np.arange(0.0, max_width + 1e-9, step)
         self.window, self.every = window, every
@@ -85,8 +156,10 @@ class BacklashEstimator:
             b = 1 - a
             other = play(m[:, b], widths[b:b + 1])[:, 0]
             cand = play(m[:, a], self.candidates)                                 # (n, k)
-            pred = cand.T[:, :, None] * jacobian[:, a] + (other[:, None] * jacobian[:, b])[None]   # (k, n, 2)
-            cost = roughness(x[None, scored] - pred[:, scored])
+            p = np.empty((cand.shape[1], n, 2))
+            p[:, :, a] = cand.T
+            p[:, :, b] = other[None, :]
+            _, cost = fit_rough(x[scored], p[:, scored], jacobian)
             best = int(np.argmin(cost))
             med = float(np.median(cost))
             depth = (med - cost[best]) / med if med > 0 else 0.0
