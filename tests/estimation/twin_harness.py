@@ -111,9 +111,11 @@ class Lock:
 
     def __init__(self, twin: TwinConfig, *, noise: ObservationNoise | None = None, loop_gain: float = 1.2,
                  probe=None, truth: SweepTruth | None = None, fixed_width: float | None = None,
-                 fixed_delay: float | None = None, scheduled: bool = True) -> None:
+                 fixed_delay: float | None = None, scheduled: bool = True, jac_kw: dict | None = None,
+                 min_span: float = 0.0) -> None:
         self.fixed_width, self.fixed_delay, self.scheduled = fixed_width, fixed_delay, scheduled
         self.probe_start = 0.0
+        self.min_span = min_span
         self.rig = SimulatedRig(twin, noise, stamp_latency=STAMP_LATENCY)
         self.rig.drives.home()
         self.twin, self.truth, self.probe = twin, truth, probe
@@ -121,7 +123,7 @@ class Lock:
         prior = self.prior = nominal_prior(m)
         far, near = nominal_prior(m, 0.15), nominal_prior(m, 0.01)
         self.jac = JacobianEstimator(prior, sv_min=0.75 * np.linalg.svd(far, compute_uv=False).min(),
-                                     sv_max=1.5 * np.linalg.svd(near, compute_uv=False).max())
+                                     sv_max=1.5 * np.linalg.svd(near, compute_uv=False).max(), **(jac_kw or {}))
         self.delay = DelayFitEstimator(initial=0.0)
         self.backlash = BacklashFitEstimator()
         self.history = History(3.0, CONTROL_DT)
@@ -168,7 +170,7 @@ class Lock:
             self.prev = (c, x)
         tp, xp = self.prev
         dm = e_c - self.eff_history.at(tp - d)
-        if np.linalg.norm(dm) >= self.jac.min_motion or c - tp >= 0.4:
+        if c - tp >= self.min_span and (np.linalg.norm(dm) >= self.jac.min_motion or c - tp >= 0.4):
             self.jac.update(dm, x - xp, c - tp)
             self.prev = (c, x)
         self.delay.add(c, x, self.eff_history.at_many, self.jac.j)

@@ -14,9 +14,10 @@ fitted per candidate width, so an error of the J handed in does not bias the wid
 A grid of widths per axis (the other axis at its current estimate) is scored by that roughness; an
 axis is updated only when it reversed inside the window by more than the candidate width (else its
 width is not observable) and the minimum is clear. Each accepted window gives a (bend, width) sample
-per axis — bend = |motor_x| + |motor_y| (handle rad) averaged over the window — and the width at a
-bend is the least-squares line through the samples (slope ≥ 0), or their median while the bends seen
-span less than 0.1 rad; always within [0, max_width].
+per axis — bend = |motor_x| + |motor_y| (handle rad) averaged over the window. Single windows scatter
+(in closed loop the target's own kinks resemble a reversal's), so the width is the median of the
+samples, and its growth with bend a Theil-Sen line (slope ≥ 0) once 8 samples span 0.3 rad of bend;
+always within [0, max_width].
 """
 from __future__ import annotations
 
@@ -127,7 +128,7 @@ class BacklashFitEstimator:
         self._count_reversals(motor)
         self.frames.append((motor, offset))
         self._count += 1
-        if self._count % self.every == 0 and len(self.frames) >= self.frames.maxlen // 2:
+        if self._count % self.every == 0 and len(self.frames) >= self.window // 2:
             self._estimate(jacobian)
 
     def _count_reversals(self, motor: np.ndarray) -> None:
@@ -184,11 +185,13 @@ class BacklashFitEstimator:
             return float("nan")
         b = np.array([v[0] for v in s])
         w = np.array([v[1] for v in s])
-        if len(w) < 3 or np.ptp(b) < 0.1:
-            return float(np.median(w))
-        slope, intercept = np.polyfit(b, w, 1)
-        if slope < 0:
-            return float(np.clip(np.median(w), 0.0, self.max_width))
+        if len(w) < 8 or np.ptp(b) < 0.3:
+            return float(np.median(w))       # windows scatter (the target's own kinks): the median holds
+        # Growth with bending: Theil-Sen line (median of pairwise slopes), robust to the scattered windows.
+        i, k = np.triu_indices(len(b), 1)
+        ok = np.abs(b[k] - b[i]) > 0.05
+        slope = max(float(np.median((w[k] - w[i])[ok] / (b[k] - b[i])[ok])), 0.0) if np.any(ok) else 0.0
+        intercept = float(np.median(w - slope * b))
         return float(np.clip(intercept + slope * bend, 0.0, self.max_width))
 
     def width(self, bend: float = 0.0) -> float:

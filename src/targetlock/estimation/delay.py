@@ -14,7 +14,8 @@ smooth, a misaligned image of our own motion is not. Unlike a cross-correlation 
 is not pulled by the target's motion that a closed loop follows (the motor moves *because* the image
 moved, one loop delay later). It reads the motor for each frame when the frame arrives, so its
 window (7 s) may be longer than the caller's motor history. Moved only when the criterion has a
-clear minimum (``correlation``, the relative depth of the minimum, at least ``min_correlation``).
+clear minimum (``correlation``, the relative depth of the minimum, at least ``min_correlation``), to
+the median of the last ``answers`` windows' delays.
 """
 from __future__ import annotations
 
@@ -76,7 +77,8 @@ class DelayFitEstimator:
     roughness of the residual (module docstring, second part); same interface as :class:`DelayEstimator`."""
 
     def __init__(self, *, initial: float = 0.0, lo: float = -0.3, hi: float = 0.8, step: float = 0.01,
-                 window: int = 160, every: int = 10, min_correlation: float = 0.05, min_frames: int = 30) -> None:
+                 window: int = 160, every: int = 10, min_correlation: float = 0.05, min_frames: int = 30,
+                 answers: int = 15) -> None:
         if not lo <= hi:
             raise ValueError(f"DelayFitEstimator: lo = {lo} must not exceed hi = {hi} (s)")
         self.delay = float(np.clip(initial, lo, hi))
@@ -95,6 +97,7 @@ class DelayFitEstimator:
         """px/rad: the J fitted with the best delay of the last window (NaN before any)."""
         self.estimates = 0
         """How many window estimates moved the delay."""
+        self._answers: deque[float] = deque(maxlen=answers)
         self._count = 0
 
     def add(self, capture_time: float, offset: np.ndarray, motor_at: Callable[[np.ndarray], np.ndarray],
@@ -124,6 +127,8 @@ class DelayFitEstimator:
         med = float(np.median(cost))
         self.correlation = float(np.clip((med - cost[best]) / med, 0.0, 1.0)) if med > 0 else 0.0
         if self.correlation >= self.min_correlation:
-            # Half-way towards the window's answer: one window's accident cannot throw the estimate.
-            self.delay = float(np.clip(0.5 * self.delay + 0.5 * self.candidates[best], self.lo, self.hi))
+            # The median of the recent windows' answers: single windows scatter (in closed loop the
+            # target's own kinks can look like ours), the median does not follow one accident.
+            self._answers.append(float(self.candidates[best]))
+            self.delay = float(np.clip(np.median(self._answers), self.lo, self.hi))
             self.estimates += 1

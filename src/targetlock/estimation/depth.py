@@ -99,9 +99,11 @@ class DepthEstimator:
     def _fit_scale(self) -> None:
         cam = self.camera
         m0, x0, s0 = self.frames[0]
-        pose0 = tip_pose(*(self.tip_gain * m0), self.tip_length, self.n_elements)
+        phi0 = self.tip_gain * m0
+        pose0 = tip_pose(phi0[0], phi0[1], self.tip_length, self.n_elements)
         ray = unproject(np.asarray(x0) + (cam.cx, cam.cy), 1.0, cam, distort=False)    # point at depth 1 m
-        poses = [tip_pose(*(self.tip_gain * f[0]), self.tip_length, self.n_elements) for f in self.frames]
+        g = self.tip_gain
+        poses = [tip_pose(g * f[0][0], g * f[0][1], self.tip_length, self.n_elements) for f in self.frames]
         s = np.array([f[2] for f in self.frames]) / s0
         # Depth of the reference frame's target point, seen from each later camera, per candidate depth.
         pts = pose0[:3, :3] @ (ray[:, None] * self.candidates[None, :]) + pose0[:3, 3:4]         # (3, k)
