@@ -78,23 +78,27 @@ def track(preset, distance, latency, jitter, noise=None, truth=None):
 @pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING)
 def test_tracking_finds_the_delay_within_one_frame(preset, distance, latency, jitter):
     """30 s of tracking after the probe, stamped with 0.4 s while the true latency differs. (Measured
-    over 5 noise seeds each: error -15 to -35 ms, except one 12 cm run at -65 ms and one looped-shaft
-    run at +115 ms.)"""
+    over 5 noise seeds each: error -15 to -35 ms in all 20 runs.)"""
     twin, lock, trace = track(preset, distance, latency, jitter)
     truth = sweep_truth(twin)
     assert lock.delay.delay == pytest.approx(delay_truth(twin, truth.tip_lag), abs=1.0 / twin.camera.fps)
     assert all(lock.delay.lo <= d <= lock.delay.hi for d in trace.delay)
 
 
-def test_tracking_at_one_and_a_half_centimetres_finds_the_backlash_within_20_percent():
-    """Measured over 5 noise seeds: within 4 % on both axes here. Elsewhere it is not yet reliable
-    (5 cm: x within 2 %, y +72-83 %; 12 cm: x -5 to +66 %; looped shaft: x -5 to -34 %, y within 4 %)."""
-    twin, lock, trace = track("calibrated", 0.015, 0.3, 0.02)
-    truth = sweep_truth(twin)
-    widths = np.array([lock.backlash.axis_width(a, 0.3) for a in range(2)])
-    np.testing.assert_allclose(widths, truth.width, rtol=0.2)
-    assert lock.backlash.reversals >= 4
-    assert all(0.0 <= w <= lock.backlash.max_width for w in trace.width)
+@pytest.mark.parametrize("preset,distance,latency,jitter", [c for c in TRACKING if c[1] < 0.1])
+def test_tracking_finds_the_backlash_within_20_percent_in_most_runs(preset, distance, latency, jitter):
+    """Per axis, at the bend of the start, in at least 2 of 3 runs (noise seeds); always within bounds.
+    Measured over 5 seeds: calibrated 1.5 cm within 4 % in all; 5 cm within 9 % in 4, one +78 % on y;
+    looped shaft within 17 % in 4, one -31 % on x; 12 cm (not asserted) within 12 % in 4, one +29 %."""
+    truth = sweep_truth(make_twin(preset, distance, latency=latency, jitter=jitter))
+    good = 0
+    for seed in range(3):
+        twin, lock, trace = track(preset, distance, latency, jitter, noise=ObservationNoise(noise_px=0.2, seed=seed))
+        widths = np.array([lock.backlash.axis_width(a, 0.3) for a in range(2)])
+        good += bool(np.all(np.abs(widths / truth.width - 1.0) <= 0.2))
+        assert lock.backlash.reversals >= 4
+        assert all(0.0 <= w <= lock.backlash.max_width for w in trace.width)
+    assert good >= 2
 
 
 @pytest.mark.xfail(strict=True, reason="known gap: in closed-loop tracking the RLS Jacobian comes out 20-45 % off "

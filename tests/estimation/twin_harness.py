@@ -136,9 +136,12 @@ class Lock:
         self.trace = Trace()
 
     def width(self, motor):
+        """Per-axis play width (handle rad): the estimate where an axis has one, else the nominal prior."""
         if self.fixed_width is not None:
             return self.fixed_width
-        return self.backlash.width(float(np.abs(motor).sum())) if self.backlash.reversals >= 3 else NOMINAL_WIDTH
+        bend = float(np.abs(motor).sum())
+        w = np.array([self.backlash.axis_width(a, bend) for a in range(2)])
+        return np.where(np.isfinite(w), w, NOMINAL_WIDTH)
 
     def run(self, seconds: float) -> Trace:
         rig = self.rig

@@ -99,7 +99,7 @@ class BacklashFitEstimator:
     docstring, second part); same interface as :class:`BacklashEstimator`, plus :meth:`axis_width`."""
 
     def __init__(self, *, max_width: float = 0.6, step: float = 0.01, window: int = 200, lead: int = 100,
-                 every: int = 20, min_travel: float = 0.01, min_depth: float = 0.03, history: int = 30) -> None:
+                 every: int = 20, min_travel: float = 0.01, min_depth: float = 0.05, history: int = 30) -> None:
         if not max_width > 0:
             raise ValueError(f"BacklashFitEstimator: max_width = {max_width} must be > 0 (handle rad)")
         self.max_width = max_width            # rad (handle)
@@ -108,7 +108,8 @@ class BacklashFitEstimator:
         self.min_travel = min_travel          # motor travel that counts as a reversal (rad)
         self.min_depth = min_depth            # relative depth of the criterion's minimum to accept a window
         self.frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window + lead)
-        self.samples: tuple[deque, deque] = (deque(maxlen=history), deque(maxlen=history))   # (bend, width) per axis
+        # (bend rad, width rad, depth of the criterion's minimum) per axis
+        self.samples: tuple[deque, deque] = (deque(maxlen=history), deque(maxlen=history))
         self.current = np.full(2, np.nan)     # latest accepted window estimate per axis (rad)
         self._count = 0
         self._reversals = 0
@@ -170,7 +171,7 @@ class BacklashFitEstimator:
             if depth >= self.min_depth and travel > self.candidates[best] + self.min_travel:
                 widths[a] = self.candidates[best]
                 self.current[a] = widths[a]
-                self.samples[a].append((bend, float(widths[a])))
+                self.samples[a].append((bend, float(widths[a]), float(depth)))
 
     @property
     def reversals(self) -> int:
@@ -186,7 +187,7 @@ class BacklashFitEstimator:
         b = np.array([v[0] for v in s])
         w = np.array([v[1] for v in s])
         if len(w) < 8 or np.ptp(b) < 0.3:
-            return float(np.median(w))       # windows scatter (the target's own kinks): the median holds
+            return _weighted_median(w, np.array([v[2] for v in s]))
         # Growth with bending: Theil-Sen line (median of pairwise slopes), robust to the scattered windows.
         i, k = np.triu_indices(len(b), 1)
         ok = np.abs(b[k] - b[i]) > 0.05
@@ -199,3 +200,10 @@ class BacklashFitEstimator:
         axes that have an estimate; 0 if none has."""
         w = [self.axis_width(a, bend) for a in range(2) if self.samples[a]]
         return float(np.mean(w)) if w else 0.0
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value below and above which half the weight lies."""
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
