@@ -127,6 +127,8 @@ class Lock:
         self.delay = DelayFitEstimator(initial=0.0)
         self.backlash = BacklashFitEstimator()
         self.history = History(3.0, CONTROL_DT)
+        self.tip_history = History(3.0, CONTROL_DT)     # oracle: the twin's tip angles, for tests only
+        self.frame_hooks: list = []                      # called with each valid observation after the estimators
         self.eff_history = History(3.0, CONTROL_DT)
         self.effective = m.copy()
         self.command = m.copy()
@@ -151,12 +153,15 @@ class Lock:
             rig.advance(now)
             motor = rig.handle_angles()
             self.history.push(now, motor)
+            self.tip_history.push(now, rig.tip_angles())
             half = 0.5 * self.width(motor)
             self.effective = np.clip(self.effective, motor - half, motor + half)
             self.eff_history.push(now, self.effective)
             for obs in rig.observations.poll(now):
                 if obs.valid:
                     self._observe(obs)
+                    for hook in self.frame_hooks:
+                        hook(obs)
             offset = self.probe.offset(now - self.probe_start) if self.probe is not None else 0.0
             lo, hi = rig.drives.limits
             sp = np.clip(np.rint((self.command + offset) / rig.drives.rad_per_tick), lo, hi)

@@ -20,8 +20,10 @@ Two sources, each with its observability condition:
     (confounded with it). Confounds depth with the assumed tip gain about linearly (Δ scales with it).
 
 The estimate is (a), always within [``lo``, ``hi``] (default 0.5–30 cm); with ``use_scale`` it is (b)
-while that is observable. (b) is not validated yet: on the twin (static target at 1.5 cm, after the
-engage probe) it fits 3.5 cm, while (a) gives 1.8 cm; so it is off by default.
+while that is observable. On the twin (static target, after the engage probe) (b) finds 1.5 cm
+exactly when fed the tip angles (a rig that measures the tip), and says "not observable" at 10 cm;
+fed the handle angles through the assumed gain and an estimated backlash it was biased (3.5 cm for
+1.5) or not observable, so it is off by default; (a) gave 1.8–2.0 cm for 1.5 and 8.7 for 10.
 """
 from __future__ import annotations
 
