@@ -101,9 +101,23 @@ def test_tracking_finds_the_backlash_within_20_percent_in_most_runs(preset, dist
     assert good >= 2
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: in closed-loop tracking the RLS Jacobian comes out 20-45 % off "
-                                       "(mostly too small: the motor follows the target, so J and the target's "
-                                       "velocity are hard to tell apart)")
+@pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:3])
+def test_tracking_jacobian_size_within_20_percent(preset, distance, latency, jitter):
+    """The size of J (geometric mean of its singular values, ``gain_scale``: what a gain schedule
+    divides by), median over 10-30 s of tracking, against the twin's. Measured over 4 noise seeds:
+    calibrated 5 cm 0.90-0.93, 1.5 cm 0.84-0.90, 12 cm 1.06-1.08 of the truth (single frames swing
+    0.6-1.3); the looped shaft 0.65-0.73 (not asserted)."""
+    twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
+    twin, lock, trace = track(preset, distance, latency, jitter, truth=sweep_truth(twin))
+    t = np.array(trace.t)
+    size = np.sqrt(np.abs(np.linalg.det(np.array(trace.j)) / np.linalg.det(np.array(trace.j_true))))
+    assert np.median(size[t > 10.0]) == pytest.approx(1.0, abs=0.2)
+
+
+@pytest.mark.xfail(strict=True, reason="known gap: in closed-loop tracking the RLS Jacobian matrix comes out "
+                                       "20-45 % off (cross terms and the axes' balance; its size is better, above): "
+                                       "J shows only where the motor's speed changes, at reversals, where the play "
+                                       "model is coarsest, and the motor follows the target")
 @pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:2])
 def test_tracking_jacobian_within_15_percent(preset, distance, latency, jitter):
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
