@@ -26,7 +26,7 @@ J_NEAR = float(np.abs(nominal_prior(np.zeros(2), 0.01)).max())     # px/rad at 1
 
 
 def probe():
-    return ProbeSignal.for_scope(NOMINAL_WIDTH, J_NEAR, max_px=100.0)
+    return ProbeSignal.for_scope(NOMINAL_WIDTH, J_NEAR, margin_px=100.0)
 
 
 def delay_truth(twin, lag):
@@ -180,10 +180,13 @@ def test_estimates_stay_bounded_and_converge_under_noise_drops_and_outliers():
 
 
 def test_probe_is_bounded_zero_mean_and_ends_at_zero():
-    p = ProbeSignal.for_scope(0.24, 1742.0, max_px=100.0)
+    p = ProbeSignal.for_scope(0.24, 1742.0, margin_px=100.0)
     t = np.arange(-0.5, 3.0, 0.001)
     off = np.array([p.offset(x) for x in t])
-    assert np.max(np.abs(off)) <= p.amplitude + 1e-12 and p.amplitude <= 0.5 * 0.24 + 100.0 / 1742.0 + 1e-12
+    assert np.max(np.abs(off)) <= p.amplitude + 1e-12 and p.amplitude == pytest.approx(0.5 * 0.24 + 100.0 / 1742.0)
+    assert p.crosses
+    capped = ProbeSignal.for_scope(0.24, 1742.0, margin_px=100.0, max_px=150.0)     # worst case 150 px at J_near
+    assert capped.amplitude * 1742.0 == pytest.approx(150.0) and not capped.crosses
     inside = (t >= 0) & (t < p.duration)
     assert np.abs(off[inside].mean(axis=0)).max() < 1e-3 * p.amplitude + 1e-9
     assert np.all(off[~inside] == 0.0) and p.done(2.0) and not p.done(1.9)
