@@ -4,18 +4,19 @@ The tracker's offset is the image of the tip's motion plus the target's own moti
 motion is smooth (it has mass; a tracker's noise is white), the image of a wrongly modelled tip motion
 is not: a wrong delay or a wrong backlash width leaves kinks at every start, stop and reversal of the
 motor. So a delay or width is judged by how rough the residual ``x − J·play_w(m(t − d))`` is: the
-robust (L1) size of its second differences. White noise and outliers add about the same to every
-candidate and do not move the minimum; a smooth target path adds little.
+robust (L1) size of its frame increments less their running mean over ~0.7 s (the slowly varying
+target velocity drops out). White noise and outliers add about the same to every candidate and do
+not move the minimum; a smooth target path adds little.
 
-J is fitted per candidate (least squares of the second differences, one robust reweighting), so
-the criterion is scale-free: a wrong J handed in cannot be "explained" by a wider play or a shift
-that hides the motion.
+J is fitted per candidate (least squares of those high-passed increments, one robust reweighting,
+pulled towards the J handed in where a window says little), so the criterion is scale-free: a wrong
+J handed in cannot be "explained" by a wider play or a shift that hides the motion.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["play", "roughness", "fit_rough"]
+__all__ = ["play", "high_pass", "fit_rough"]
 
 
 def play(m: np.ndarray, widths: np.ndarray, start: float | None = None) -> np.ndarray:
@@ -32,12 +33,6 @@ def play(m: np.ndarray, widths: np.ndarray, start: float | None = None) -> np.nd
     return out
 
 
-def roughness(residual: np.ndarray) -> np.ndarray:
-    """L1 size of the second differences of residuals (…, n, 2) over the frame axis: shape (…)."""
-    d2 = np.diff(residual, n=2, axis=-2)
-    return np.sum(np.sqrt(np.sum(d2 * d2, axis=-1)), axis=-1)
-
-
 def high_pass(z: np.ndarray, span: int, axis: int) -> np.ndarray:
     """``z`` minus its centred moving average over ``span`` samples along ``axis`` (edges: shorter average)."""
     z = np.moveaxis(z, axis, -1)
@@ -51,10 +46,10 @@ def high_pass(z: np.ndarray, span: int, axis: int) -> np.ndarray:
 def fit_rough(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.3,
               span: int = 15) -> tuple[np.ndarray, np.ndarray]:
     """For each candidate motion ``p`` (k, n, 2) (rad) and the offsets ``x`` (n, 2) (px): the J (k, 2, 2)
-    that best maps the second differences of p onto those of x, pulled towards ``prior`` (2, 2) (ridge
+    that best maps the high-passed increments of p onto those of x, pulled towards ``prior`` (2, 2) (ridge
     of ``ridge`` × the mean excitation, so a window with little or one-sided motion keeps the prior
-    where it says nothing), and the L1 roughness (k,) of the residual second differences
-    ``Δ²x − J·Δ²p`` (Δ² here: the frame increments less their running mean over ``span`` frames). Rows whose residual exceeds 3× the median (tracker outliers, target jumps) are
+    where it says nothing), and the L1 roughness (k,) of the residual ``Hx − J·Hp``, H: the frame
+    increments less their running mean over ``span`` frames. Rows whose residual exceeds 3× the median (tracker outliers, target jumps) are
     dropped and the fit repeated once."""
     # Frame increments less their running mean over ``span`` frames: the target's own velocity, slowly
     # varying, drops out; our motion's starts, stops and reversals stay.
