@@ -3,7 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from targetlock.estimation import BacklashEstimator, DelayEstimator, JacobianEstimator, prior_jacobian
+from targetlock.estimation import (BacklashEstimator, BacklashFitEstimator, DelayEstimator, DelayFitEstimator,
+                                   JacobianEstimator, prior_jacobian)
 from targetlock.model.camera import CameraParams
 
 J_TRUE = np.array([[-620.0, 90.0], [-60.0, -540.0]])     # px per handle rad, with cross coupling
@@ -67,22 +68,37 @@ def test_prior_is_the_kinematic_jacobian_and_grows_at_short_distance():
     assert abs(far[0, 1]) < 1e-6 * abs(far[0, 0])
 
 
-@pytest.mark.parametrize("delay", [0.0, 0.2, 0.35])
-def test_delay_is_found_within_one_frame(delay):
+def delayed_image(est, delay, drift, given):
+    """Feed ``est`` frames showing the motor's image ``delay`` s late (plus the target's own ``drift(t)``
+    px and 1 px noise), handing it the Jacobian ``given``; return it."""
     rng = np.random.default_rng(3)
-    dt_frame = 1.0 / 20.0
     t_motor = np.arange(-2.0, 12.0, 0.02)
     m = smooth_motion(t_motor) + np.column_stack([np.cumsum(rng.normal(0, 0.004, t_motor.size))] * 2)
     motor_at = lambda ts: np.column_stack([np.interp(ts, t_motor, m[:, k]) for k in range(2)])  # noqa: E731
-    est = DelayEstimator(initial=0.0)
-    for tc in np.arange(0.0, 12.0, dt_frame):
-        x = motor_at(np.array([tc - delay]))[0] @ J_TRUE.T + rng.normal(0, 1.0, 2)
-        est.add(tc, x, motor_at, J_TRUE)
-    assert est.delay == pytest.approx(delay, abs=dt_frame)
+    for tc in np.arange(0.0, 12.0, 0.05):
+        x = motor_at(np.array([tc - delay]))[0] @ J_TRUE.T + drift(tc) + rng.normal(0, 1.0, 2)
+        est.add(tc, x, motor_at, given)
+    return est
 
 
-def test_delay_stays_in_bounds_without_motion_or_with_garbage():
-    est = DelayEstimator(initial=0.1, lo=-0.2, hi=0.8)
+@pytest.mark.parametrize("delay", [0.0, 0.2, 0.35])
+def test_delay_is_found_within_one_frame(delay):
+    est = delayed_image(DelayEstimator(initial=0.0), delay, lambda t: 0.0, J_TRUE)
+    assert est.delay == pytest.approx(delay, abs=0.05)
+
+
+@pytest.mark.parametrize("delay", [-0.15, 0.0, 0.2])
+def test_delay_fit_within_one_frame_with_a_moving_target_and_the_prior_jacobian(delay):
+    """The target drifts on its own; the estimator is handed the prior, not the true J."""
+    est = delayed_image(DelayFitEstimator(initial=0.0), delay, lambda t: np.array([30.0 * np.sin(0.4 * t), 12.0 * t]),
+                        PRIOR)
+    assert est.delay == pytest.approx(delay, abs=0.05)
+    assert est.lo <= est.delay <= est.hi
+
+
+@pytest.mark.parametrize("cls", [DelayEstimator, DelayFitEstimator])
+def test_delay_stays_in_bounds_without_motion_or_with_garbage(cls):
+    est = cls(initial=0.1, lo=-0.2, hi=0.8)
     rng = np.random.default_rng(4)
     still = lambda ts: np.zeros((np.size(ts), 2))  # noqa: E731
     for k in range(300):
@@ -122,3 +138,19 @@ def test_backlash_estimate_is_bounded():
     for bend in (0.0, 1.0, 3.0):
         assert 0.0 <= est.width(bend) <= 0.5
     assert math.isfinite(est.width(1.0))
+
+
+@pytest.mark.parametrize("width", [0.06, 0.12, 0.3])
+def test_backlash_fit_per_axis_within_20_percent_with_a_moving_target_and_a_wrong_jacobian(width):
+    t = np.arange(0.0, 30.0, 0.05)
+    m = np.column_stack([0.4 * np.sin(2 * np.pi * t / 6.0), 0.3 * np.sin(2 * np.pi * t / 8.0 + 0.5)])
+    j = np.diag([-500.0, -450.0])
+    tip = np.column_stack([play(m[:, 0], width), play(m[:, 1], 0.8 * width)])
+    drift = np.column_stack([40.0 * np.sin(0.3 * t), 25.0 * np.cos(0.2 * t)])          # the target moves, smoothly
+    x = tip @ j.T + drift + np.random.default_rng(5).normal(0, 0.5, tip.shape)
+    est = BacklashFitEstimator()
+    for k in range(t.size):
+        est.add(m[k], x[k], 1.6 * j)                   # the J handed in is 60 % too large
+    assert est.reversals >= 4
+    assert est.axis_width(0, 0.3) == pytest.approx(width, rel=0.2)
+    assert est.axis_width(1, 0.3) == pytest.approx(0.8 * width, rel=0.2)

@@ -9,13 +9,22 @@ output stays within stated physical limits whatever the input (noise, dropped fr
   coupling included; it carries the working distance, the camera and the handle gain);
 * :class:`DelayEstimator` — the delay between the motor motion and the image motion it causes,
   relative to the frames' capture time stamps (a wrongly stamped or unknown video latency);
+  :class:`DelayFitEstimator` the same by an output-error fit that a closed loop does not bias;
 * :class:`BacklashEstimator` — the motor travel lost at each reversal before the image follows
-  (deadband / backlash width) and its growth with bending.
+  (deadband / backlash width) and its growth with bending; :class:`BacklashFitEstimator` the same per
+  axis by fitting a play operator (robust to the target's own motion); :func:`nominal_width` its prior;
+* :class:`DepthEstimator` — the target depth, from the Jacobian's size and (where observable) the
+  tracker's scale;
+* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging.
 """
 from __future__ import annotations
 
-from .backlash import BacklashEstimator
-from .delay import DelayEstimator
+from .backlash import BacklashEstimator, BacklashFitEstimator
+from .delay import DelayEstimator, DelayFitEstimator
+from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
+from .probe import ProbeSignal, nominal_width
 
-__all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "BacklashEstimator"]
+__all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
+           "BacklashFitEstimator", "DepthEstimator",
+           "ProbeSignal", "nominal_width"]

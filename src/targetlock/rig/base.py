@@ -36,6 +36,9 @@ class Observation:
     """Ground-truth offset (px) where the rig knows it (twin); never used by controllers."""
     arrival_time: float = float("nan")
     """When the observation became available to the loop (s, loop clock), for latency statistics."""
+    scale: float = float("nan")
+    """Apparent size of the target relative to its size when it was selected (unitless, ∝ 1/depth);
+    NaN when the tracker does not measure it."""
 
 
 class DriveFault(RuntimeError):

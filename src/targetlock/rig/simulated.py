@@ -38,6 +38,7 @@ class ObservationNoise:
     drop_probability: float = param(0.0, lo=0.0, hi=1.0, doc="probability that a frame yields no observation")
     outlier_probability: float = param(0.0, lo=0.0, hi=1.0, doc="probability of a wrong but 'valid' observation")
     outlier_px: float = param(150.0, unit="px", lo=0.0, hi=2000.0, doc="size of an outlier's error")
+    scale_noise: float = param(0.0, lo=0.0, hi=1.0, doc="relative standard deviation of the reported target scale")
     seed: int = param(0, lo=0, hi=2**63 - 1, doc="random seed of the imperfections")
 
 
@@ -123,6 +124,7 @@ class SimulatedRig(Rig):
         self.noise = noise or ObservationNoise()
         # Its own stream, so turning jitter on does not change the tracker noise's draws.
         self._jitter_rng = np.random.default_rng([self.noise.seed, 1])
+        self._scale_rng = np.random.default_rng([self.noise.seed, 2])
         self.rng = np.random.default_rng(self.noise.seed)
         self.params = pack_params(twin.endoscope, twin.drive)
         self.state = initial_state(1)
@@ -221,6 +223,12 @@ class SimulatedRig(Rig):
         if visible and nz.outlier_probability and rng.random() < nz.outlier_probability:
             angle = rng.uniform(0, 2 * np.pi)
             offset = offset + nz.outlier_px * np.array([np.cos(angle), np.sin(angle)])
+        # Relative apparent size: the target's depth when it was selected (the scene distance) over its
+        # depth in the camera now, as a template tracker's scale would report it.
+        depth = float(world_to_camera(self.camera_pose(), self.scene.target_position(t))[2])
+        scale = self.twin.scene.distance / depth if visible and depth > 0 else math.nan
+        if visible and nz.scale_noise:
+            scale *= 1.0 + self._scale_rng.normal(0.0, nz.scale_noise)
         return Observation(capture_time=t, offset=offset if visible else np.array([np.nan, np.nan]),
                            valid=visible, confidence=1.0 if visible else 0.0, frame_index=self.frame_index,
-                           truth=truth)
+                           truth=truth, scale=scale)
