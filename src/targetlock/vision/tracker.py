@@ -200,6 +200,12 @@ def _weighted_affine(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndar
     return np.vstack([sol.T, [0.0, 0.0, 1.0]])
 
 
+def _detail(gray: np.ndarray) -> np.ndarray:
+    """High-passed float32 gray (Gaussian sigma 6 px removed): texture without the light fall-off."""
+    f = gray.astype(np.float32)
+    return f - cv2.GaussianBlur(f, (0, 0), 6.0)
+
+
 # ----------------------------------------------------------------------------- feature tracker
 @dataclass(frozen=True)
 class TrackerSettings:
@@ -244,6 +250,8 @@ class TrackerSettings:
     patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
                                       doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
                                           "patch counts as covered")
+    dense_min_ecc: float = param(0.6, lo=0.0, hi=1.0,
+                                 doc="least ECC correlation of the dense keyframe match (weak texture) that agrees with the chain")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -275,6 +283,7 @@ class _Keyframe:
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
     patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
+    detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -285,6 +294,7 @@ class FeatureTracker(Tracker):
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
+        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                    patchSize=31, fastThreshold=10)
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
@@ -298,7 +308,7 @@ class FeatureTracker(Tracker):
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
-                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0}
+                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -589,6 +599,7 @@ class FeatureTracker(Tracker):
         self._hann = None
         self._clock.reset()
         self._steps = 1.0             # frame intervals from the last frame to this one
+        self._gap = 0.0               # frame intervals from the last accepted frame to the last frame
 
     def _close(self, kf: _Keyframe, anchor_to_pred: np.ndarray, frac: float) -> bool:
         """The predicted view differs from keyframe ``kf`` by less than ``frac`` of the renewal limits."""
@@ -631,10 +642,8 @@ class FeatureTracker(Tracker):
         x0, y0 = int(off[0]), int(off[1])
         fov = self._fov[y0:y0 + self._side, x0:x0 + self._side].astype(np.float32)
         win = self._hann * cv2.blur(cv2.erode(fov, np.ones((9, 9), np.uint8)), (17, 17)) * (1.0 / 255.0)
-        def detail(g):  # high-pass: the static light fall-off would also peak at zero shift
-            f = g.astype(np.float32)
-            return f - cv2.GaussianBlur(f, (0, 0), 6.0)
-        (dx, dy), response = cv2.phaseCorrelate(detail(self._prev.gray), detail(same.gray), win)
+        # high-pass: the static light fall-off would also peak at zero shift
+        (dx, dy), response = cv2.phaseCorrelate(_detail(self._prev.gray), _detail(same.gray), win)
         if response < 0.05 or math.hypot(dx, dy) > self._side / 3:
             return None
         return np.array([dx, dy])
@@ -689,10 +698,43 @@ class FeatureTracker(Tracker):
         return ncc
 
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
-        """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
+        """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform.
+        Returns (motion or None, kept keyframe points, their matches, the warped region)."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
-        return self._motion(ksrc, kdst, kf.target), ksrc, kdst
+        return self._motion(ksrc, kdst, kf.target), ksrc, kdst, wv
+
+    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+        """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
+        blur, noise, an exposure step): the keyframe's target window (highlights left out) is
+        aligned with this frame's region ``wv`` (already warped by the prediction ``key_to_pred``)
+        by ECC, a correlation that is invariant to gain and offset. Returns (keyframe frame ->
+        this frame, 3x3; the correlation) or None when it does not converge or correlates less
+        than ``dense_min_ecc``."""
+        s = self.settings
+        half = int(0.5 * self._window)
+        t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
+        h, w = kf.view.gray.shape
+        x0, y0 = max(0, t[0] - half), max(0, t[1] - half)
+        x1, y1 = min(w, t[0] + half + 1), min(h, t[1] + half + 1)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        box = (slice(y0, y1), slice(x0, x1))
+        if np.count_nonzero(kf.view.sat[box]) > 0.5 * (y1 - y0) * (x1 - x0):
+            return None
+        if kf.detail is None:
+            kf.detail = _detail(kf.view.gray)
+        warp = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0]], np.float32)
+        try:  # high-passed (the light fall-off moves with the camera, not with the tissue); the
+            # mask (of the input region) leaves this frame's highlights out
+            rho, warp = cv2.findTransformECC(kf.detail[box], _detail(wv.gray), warp, cv2.MOTION_TRANSLATION,
+                                             self._ecc_crit, (~wv.sat).view(np.uint8), 5)
+        except cv2.error:  # did not converge
+            return None
+        d = warp[:, 2].astype(float) - (x0, y0)  # shift in the keyframe's (and the warped region's) pixels
+        if not rho >= s.dense_min_ecc or np.hypot(*d) > s.search_margin_px:
+            return None
+        return key_to_pred @ _translation(d), float(rho)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
@@ -713,10 +755,14 @@ class FeatureTracker(Tracker):
             return res
         self._misses += 1
         self.stats["misses"] += 1
-        self._vel[:] = 0.0
-        self._vel_known = False
+        # The target keeps moving while frames are rejected (blur, a glint, a covered moment): the
+        # prediction coasts on the last velocity over the whole gap since the last accepted frame.
+        self._gap += self._steps
         if self._misses > s.max_misses:
             self.lost = True
+            self._vel[:] = 0.0
+            self._vel_known = False
+            self._gap = 0.0
             self._lost_frames = 0
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
         return TrackResult(self._pos.copy(), 0.0, False, False)
@@ -725,7 +771,7 @@ class FeatureTracker(Tracker):
         """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
         target is lost and this is a cheap local attempt (keyframe evidence required)."""
         s = self.settings
-        steps = self._steps
+        steps = self._steps + self._gap  # frame intervals since the last accepted frame
         pred = self._pos + self._vel * steps  # velocity in px per typical frame interval
         tried_shift = False
         if not relock and not self._vel_known:
@@ -751,14 +797,21 @@ class FeatureTracker(Tracker):
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
         key = None
+        current = None  # (key_to_pred, warped region) of the current keyframe, for the dense fallback
         for kf, least in self._keyframe_candidates(anchor_to_pred):
-            km, ksrc, kdst = self._match_keyframe(view, kf, anchor_to_pred @ _inv(kf.from_anchor))
+            key_to_pred = anchor_to_pred @ _inv(kf.from_anchor)
+            km, ksrc, kdst, wv = self._match_keyframe(view, kf, key_to_pred)
+            if kf is self._key:
+                current = (key_to_pred, wv)
             if km is not None and km[3] >= least:
                 key = (kf, km, kdst)
                 break
         est_chain = _apply(chain[0], self._pos) if chain is not None else None
         if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
             key = None  # a keyframe alone, on a few features only: not trusted
+        dense = None
+        if key is None and current is not None and chain is not None and not relock:
+            dense = self._match_dense(self._key, *current)  # checked against the chain below
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
@@ -777,6 +830,20 @@ class FeatureTracker(Tracker):
                 est = (n_in * est + n_c * est_chain) / (n_in + n_c)
             new_from_anchor = sim @ kf.from_anchor
             next_pts = kdst[inl]
+        elif dense is not None:
+            # Too few corners matched the keyframe, but its whole target window aligns densely.
+            kf = self._key
+            aff, rho = dense
+            est = _apply(aff, kf.target)
+            n_in = 0
+            if np.hypot(*(est - est_chain)) > s.consistency_px:
+                self.stats["inconsistent"] += 1
+                return None
+            est = 0.5 * (est + est_chain)
+            self.stats["dense"] += 1
+            conf = 0.5 * rho
+            new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
+            next_pts = dst[chain[2]]
         elif (chain is not None and not relock and self._misses == 0 and self._chain_only < 3
               and chain[3] >= 2 * s.min_inliers):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
@@ -794,7 +861,7 @@ class FeatureTracker(Tracker):
             return None
         # The target's own patch must still look like the keyframe's: the surrounding features
         # alone cannot tell that an instrument (or blood, smoke) now covers the target itself.
-        if key is not None:
+        if key is not None or dense is not None:
             ref, ref_to_frame = kf, aff.copy()  # the local affine: follows the lens distortion too
         else:
             ref = self._key
@@ -807,14 +874,14 @@ class FeatureTracker(Tracker):
         conf *= min(1.0, ncc / s.patch_keyframe_ncc)
         # One-sided support (inliers only on one side: the rest covered or out of view) is an
         # extrapolation: less confident.
-        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        surrounded = bool(np.all(est > lo) and np.all(est < hi))
+        surrounded = len(next_pts) > 0 and bool(np.all(est > next_pts.min(axis=0)) and np.all(est < next_pts.max(axis=0)))
         if not surrounded:
             conf *= 0.5
         # Accept.
-        self._chain_only = 0 if key is not None else self._chain_only + 1
-        self._vel_known = not relock and self._misses == 0
+        self._chain_only = 0 if (key is not None or dense is not None) else self._chain_only + 1
+        self._vel_known = not relock
         self._vel = (est - self._pos) / steps if self._vel_known else np.zeros(2)
+        self._gap = 0.0
         self._pos = est
         self._misses = 0
         self.lost = False
@@ -834,8 +901,7 @@ class FeatureTracker(Tracker):
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
         # extrapolation, which drifts at the edge of the view), its own patch unchanged.
-        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        supported = (bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+        supported = (surrounded and self._in_view(est, inner=True)
                      and ncc >= s.patch_keyframe_ncc)
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
@@ -885,24 +951,33 @@ class FeatureTracker(Tracker):
         _, kf, key_to_cur = best
         est0 = _apply(key_to_cur, kf.target)
         base = self._crop(frame, est0)
-        km, ksrc, kdst = self._match_keyframe(base, kf, key_to_cur)
+        km, ksrc, kdst, _ = self._match_keyframe(base, kf, key_to_cur)
         if km is None or km[3] < 1.5 * s.min_inliers:
             return None
         aff, sim, inl, n_in = km
         est = _apply(aff, kf.target)
         if np.hypot(*(est - est0)) > 6.0:
             return None
+        conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
+        return self._relocked(est, kf, sim, base, kdst[inl], conf)
+
+    def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
+                  conf: float) -> TrackResult:
+        """Accept a whole-frame re-acquisition: the target at ``est`` (px), matched to keyframe ``kf``
+        by the similarity ``key_to_cur``; ``pts`` (px) are the features to follow from ``view``."""
+        if len(pts) < self.settings.max_features // 2:
+            extra = self._features(view, est, 0.5 * self._window)
+            pts = np.vstack([pts, extra]) if len(extra) else pts
         self._pos = est
         self._vel = np.zeros(2)
         self._vel_known = False
         self._misses = 0
         self.lost = False
-        self._from_anchor = sim @ kf.from_anchor
+        self._from_anchor = key_to_cur @ kf.from_anchor
         self._key = kf
-        self._prev = base
-        self._prev_pts = kdst[inl].astype(np.float32)
+        self._prev = view
+        self._prev_pts = np.asarray(pts, np.float32).reshape(-1, 2)
         self.stats["reacquisitions"] += 1
-        conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
         return TrackResult(est.copy(), float(conf), True, False)
 
 
