@@ -272,6 +272,16 @@ class _View:
     to_frame: np.ndarray
     sat: np.ndarray
     raw: np.ndarray
+    flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+
+    def local(self) -> np.ndarray:
+        """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
+        constancy holds across an exposure step even where the region's normalisation changed
+        (clipped pixels, glare that came or went)."""
+        if self.flat is None:
+            f = self.gray.astype(np.float32)
+            self.flat = cv2.convertScaleAbs(f - cv2.GaussianBlur(f, (0, 0), 5.0), alpha=1.5, beta=128.0)
+        return self.flat
 
 
 @dataclass(eq=False)
@@ -308,11 +318,13 @@ class FeatureTracker(Tracker):
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
-                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0}
+                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
+                      "retried": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
         self._clock = FrameClock()
+        self._retry = False  # the optical flow runs on local-mean-free images (exposure retry)
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -444,10 +456,14 @@ class FeatureTracker(Tracker):
             return pts, pts
         p0 = _apply(_inv(a.to_frame), pts).astype(np.float32).reshape(-1, 1, 2)
         g = _apply(_inv(b.to_frame), guess).astype(np.float32).reshape(-1, 1, 2)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(a.gray, b.gray, p0, g, winSize=self._win, maxLevel=levels,
+        ga, gb = a.gray, b.gray
+        if self._retry:  # local-mean-free, and only fine levels: large areas that clipped or came
+            # out of clipping change the coarse levels most
+            ga, gb, levels = a.local(), b.local(), min(levels, 1)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, p0, g, winSize=self._win, maxLevel=levels,
                                              criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         back = p1 - (g - p0)  # backward search starts from the predicted motion, not from the answer
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(b.gray, a.gray, p1, back, winSize=self._win, maxLevel=levels,
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(gb, ga, p1, back, winSize=self._win, maxLevel=levels,
                                               criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.settings.fb_max_px)
@@ -751,6 +767,16 @@ class FeatureTracker(Tracker):
                 return TrackResult(np.full(2, np.nan), 0.0, False, True)
             return res
         res = self._track(frame_bgr, relock=False)
+        if res is None:
+            # Rejected: an exposure step (or glare that came or went) may have changed the region's
+            # normalisation. Retry on local-mean-free images before counting a miss.
+            self._retry = True
+            try:
+                res = self._track(frame_bgr, relock=False)
+            finally:
+                self._retry = False
+            if res is not None:
+                self.stats["retried"] += 1
         if res is not None:
             return res
         self._misses += 1
