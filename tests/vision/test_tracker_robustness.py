@@ -202,3 +202,24 @@ def test_an_exposure_step_keeps_the_lock(request, sel_pose, content, gain):
     assert sum(not r.valid for r in res) <= 2
     errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
     assert np.all(errs[np.isfinite(errs)] < 2.0), errs.round(2)
+
+
+def test_a_target_at_the_edge_of_the_view_is_tracked_then_reported_lost(renderer, sel_pose, cam):
+    """The target slides out through the round field of view's edge (280 px radius): with its window
+    partly outside, it is still tracked on the features inside, to within a few px of the edge, with
+    the confidence falling with the window's missing share; once out it is not reported (no false
+    position) and soon declared lost."""
+    renderer.reseed(6)
+    frames = [renderer.render(np.eye(4), sel_pose((0.03 + 0.0015 * i, 0.003, 0.05), P_SEL, (0.1, -0.05, 0.3)),
+                              point_m=P_SEL) for i in range(36)]
+    edge = np.array([280.0 - np.hypot(*(f.truth_px - (cam.cx, cam.cy))) for f in frames[1:]])  # px inside
+    tr = FeatureTracker()
+    res = _run(tr, frames)
+    errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
+    conf = np.array([r.confidence for r in res])
+    near = edge >= 4.0
+    assert edge.min() < -40 and near.sum() > 15
+    assert np.all(errs[near] < 3.0), errs.round(2)                      # tracked up to ~4 px from the edge
+    assert conf[(edge < 15) & near].max() < 0.5 * conf[edge > 60].min()  # less confident with half a window
+    assert not any(r.valid for r, e in zip(res, edge) if e < 0)          # out: no position reported
+    assert all(r.lost for r, e in zip(res, edge) if e < -25)

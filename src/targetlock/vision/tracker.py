@@ -606,6 +606,7 @@ class FeatureTracker(Tracker):
         self._window = float(window_px)
         k = max(3, int(self._window // 2) | 1)
         self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
+        self._fov_sum = cv2.integral(self._fov // 255)  # for the share of a window inside the view
         self._vel = np.zeros(2)
         self._vel_known = False
         self._misses = 0
@@ -637,6 +638,16 @@ class FeatureTracker(Tracker):
                 out.append((kf, 0))
                 break
         return out
+
+    def _view_share(self, p: np.ndarray) -> float:
+        """Share (0..1) of the target window centred at ``p`` (px) that lies inside the field of view."""
+        h, w = self._fov.shape
+        half = 0.5 * self._window
+        x0, y0 = int(np.clip(round(p[0] - half), 0, w)), int(np.clip(round(p[1] - half), 0, h))
+        x1, y1 = int(np.clip(round(p[0] + half), 0, w)), int(np.clip(round(p[1] + half), 0, h))
+        ii = self._fov_sum
+        inside = float(ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0])
+        return min(1.0, inside / max(1.0, (2 * half) ** 2))
 
     def _in_view(self, p: np.ndarray, inner: bool = False) -> bool:
         """``p`` (px) lies inside the (shrunk) field of view; ``inner``: a quarter window further in."""
@@ -903,6 +914,9 @@ class FeatureTracker(Tracker):
         surrounded = len(next_pts) > 0 and bool(np.all(est > next_pts.min(axis=0)) and np.all(est < next_pts.max(axis=0)))
         if not surrounded:
             conf *= 0.5
+        # At the edge of the view (or of the image) only part of the window has image: the
+        # features there carry the estimate, with confidence in proportion to the window's share.
+        conf *= self._view_share(est)
         # Accept.
         self._chain_only = 0 if (key is not None or dense is not None) else self._chain_only + 1
         self._vel_known = not relock
