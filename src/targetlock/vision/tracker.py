@@ -252,6 +252,9 @@ class TrackerSettings:
                                           "patch counts as covered")
     dense_min_ecc: float = param(0.6, lo=0.0, hi=1.0,
                                  doc="least ECC correlation of the dense keyframe match (weak texture) that agrees with the chain")
+    patch_blur_ncc: float = param(0.3, lo=-1.0, hi=1.0,
+                                  doc="a target patch with less texture energy, evenly spread, that still correlates "
+                                      "this much is the same tissue blurred (weak texture under motion blur), not covered")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -292,6 +295,7 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
+    sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
 
@@ -538,13 +542,15 @@ class FeatureTracker(Tracker):
         return pts[near], desc[near]
 
     def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
-                       from_anchor: np.ndarray, pts: np.ndarray | None = None) -> _Keyframe | None:
+                       from_anchor: np.ndarray, pts: np.ndarray | None = None, sharp: bool = True) -> _Keyframe | None:
+        """A keyframe of ``view`` (target at ``target`` px); ``sharp``: its view is not a blurred one
+        (only sharp keyframes are matched over the whole frame when re-acquiring)."""
         if pts is None:
             pts = self._features(view, target, 0.5 * self._window)
         if len(pts) < self.settings.min_inliers:
             return None
-        kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor)
-        if self.settings.reacquire:
+        kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor, sharp=sharp)
+        if self.settings.reacquire and sharp:
             kf.orb_pts, kf.orb_desc = self._orb_describe(frame, target)
         self.stats["keyframes"] += 1
         return kf
@@ -675,13 +681,15 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
-    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> float:
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
         both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
-        misregistered, not covered); 0 for a uniform patch, 1 when the keyframe's patch itself is
-        uniform or mostly glare (nothing to compare)."""
+        misregistered, not covered) or the energy is evenly lower and it still correlates
+        ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch, 1 when the keyframe's
+        patch itself is uniform or mostly glare (nothing to compare). Also returns whether the
+        patch passed only as a blurred view (a keyframe made from it is not used to re-acquire)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
@@ -702,27 +710,30 @@ class FeatureTracker(Tracker):
         cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
-            return 1.0  # mostly glare: nothing to compare (the glare test is elsewhere)
+            return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
         a, b = ref[ok], cur[ok]
         a = a - a.mean()
         b = b - b.mean()
         e_ref = float(np.dot(a, a))
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
-            return 1.0
+            return 1.0, False
         e_cur = float(np.dot(b, b))
         den = math.sqrt(e_cur * e_ref)
         ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
-        # misregistered or blurred view of the same tissue.
+        # misregistered or blurred view of the same tissue; so is an even loss of energy that still
+        # correlates (weak texture under motion blur), while a covered patch does not correlate.
         box = (9, 9)
         local = cv2.blur(cur * cur, box)[ok] / (cv2.blur(ref * ref, box)[ok] + 1.0)
         vanished = float(np.mean(local < 0.1 * np.percentile(local, 90)))
-        if (1.0 / self.settings.patch_energy_ratio <= e_cur / e_ref <= self.settings.patch_energy_ratio
-                and vanished < 0.25):
-            return max(ncc, self.settings.patch_keyframe_ncc)
-        return ncc
+        ratio = e_cur / e_ref
+        if vanished < 0.25 and 1.0 / self.settings.patch_energy_ratio <= ratio <= self.settings.patch_energy_ratio:
+            return max(ncc, self.settings.patch_keyframe_ncc), False
+        if vanished < 0.25 and ratio < 1.0 and ncc >= self.settings.patch_blur_ncc:
+            return max(ncc, self.settings.patch_keyframe_ncc), ncc < self.settings.patch_keyframe_ncc
+        return ncc, False
 
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform.
@@ -904,7 +915,7 @@ class FeatureTracker(Tracker):
             ref = self._key
             ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
         ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
-        ncc = self._patch_similarity(view, ref, ref_to_frame)
+        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame)
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
@@ -946,7 +957,7 @@ class FeatureTracker(Tracker):
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
-            kf_new = self._make_keyframe(frame, view, est, new_from_anchor)
+            kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
                 self._recent.append(kf_new)
                 self._key = kf_new
@@ -964,7 +975,8 @@ class FeatureTracker(Tracker):
             return None
         pts = np.array([k.pt for k in kps], np.float32)
         # One matching pass for the anchor and the most recent keyframe together.
-        kfs = [k for k in [self._anchor, *list(self._recent)[-1:]]
+        sharp = [k for k in self._recent if k.sharp][-1:]  # the latest not made from a blurred view
+        kfs = [k for k in [self._anchor, *sharp]
                if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
         if not kfs:
             return None
