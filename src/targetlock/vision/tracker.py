@@ -296,7 +296,8 @@ class _Keyframe:
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
-    patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
+    patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
+    # energy), made on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
 
 
@@ -649,8 +650,8 @@ class FeatureTracker(Tracker):
         """Share (0..1) of the target window centred at ``p`` (px) that lies inside the field of view."""
         h, w = self._fov.shape
         half = 0.5 * self._window
-        x0, y0 = int(np.clip(round(p[0] - half), 0, w)), int(np.clip(round(p[1] - half), 0, h))
-        x1, y1 = int(np.clip(round(p[0] + half), 0, w)), int(np.clip(round(p[1] + half), 0, h))
+        x0, y0 = min(max(round(p[0] - half), 0), w), min(max(round(p[1] - half), 0), h)
+        x1, y1 = min(max(round(p[0] + half), 0), w), min(max(round(p[1] + half), 0), h)
         ii = self._fov_sum
         inside = float(ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0])
         return min(1.0, inside / max(1.0, (2 * half) ** 2))
@@ -705,8 +706,9 @@ class FeatureTracker(Tracker):
             return cv2.GaussianBlur(g, (5, 5), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0), sat == 0
 
         if kf.patch is None:
-            kf.patch = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-        ref, ok_ref = kf.patch
+            ref, ok_ref = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+            kf.patch = ref, ok_ref, cv2.blur(ref * ref, (9, 9)) + 1.0
+        ref, ok_ref, ref_local = kf.patch
         cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
@@ -725,9 +727,9 @@ class FeatureTracker(Tracker):
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
         # misregistered or blurred view of the same tissue; so is an even loss of energy that still
         # correlates (weak texture under motion blur), while a covered patch does not correlate.
-        box = (9, 9)
-        local = cv2.blur(cur * cur, box)[ok] / (cv2.blur(ref * ref, box)[ok] + 1.0)
-        vanished = float(np.mean(local < 0.1 * np.percentile(local, 90)))
+        local = cv2.blur(cur * cur, (9, 9))[ok] / ref_local[ok]
+        k = int(0.9 * (len(local) - 1))
+        vanished = float(np.mean(local < 0.1 * np.partition(local, k)[k]))
         ratio = e_cur / e_ref
         if vanished < 0.25 and 1.0 / self.settings.patch_energy_ratio <= ratio <= self.settings.patch_energy_ratio:
             return max(ncc, self.settings.patch_keyframe_ncc), False
