@@ -16,8 +16,14 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     the target has not jumped away from its constant-velocity prediction (a false jump).
     Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
     well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
-    returns close to it and overrules a drifted chain. After ``max_misses`` consecutive rejected
-    frames the target is **lost**; it is then re-acquired locally (keyframe flow) or over the
+    returns close to it and overrules a drifted chain. When too few corners follow the keyframe
+    (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
+    window stands in for them, accepted only when it agrees with the chain. A rejected frame is
+    **retried** on local-mean-free images (an exposure step that clips or unclips large areas
+    changes the region's normalisation) before it counts as a miss; over misses the prediction
+    coasts on the last velocity. The confidence scales with the share of the target window
+    inside the field of view (a target at the edge is tracked on the features that remain).
+    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then re-acquired locally (keyframe flow) or over the
     whole frame by ORB matching against the keyframes, verified with RANSAC and by the
     optical-flow keyframe check. In the normal case only a region of interest around the
     prediction is processed (a ~200 px square for an 80 px window).
