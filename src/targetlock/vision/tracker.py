@@ -261,6 +261,8 @@ class TrackerSettings:
     patch_blur_ncc: float = param(0.3, lo=-1.0, hi=1.0,
                                   doc="a target patch with less texture energy, evenly spread, that still correlates "
                                       "this much is the same tissue blurred (weak texture under motion blur), not covered")
+    patch_blur_energy: float = param(0.2, lo=0.0, hi=1.0,
+                                     doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -693,8 +695,8 @@ class FeatureTracker(Tracker):
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
         both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
-        misregistered, not covered) or the energy is evenly lower and it still correlates
-        ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch, 1 when the keyframe's
+        misregistered, not covered) or the energy is evenly lower (down to ``patch_blur_energy``)
+        and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch, 1 when the keyframe's
         patch itself is uniform or mostly glare (nothing to compare). Also returns whether the
         patch passed only as a blurred view (a keyframe made from it is not used to re-acquire)."""
         half = max(7, int(round(0.2 * self._window)))
@@ -739,7 +741,7 @@ class FeatureTracker(Tracker):
         ratio = e_cur / e_ref
         if vanished < 0.25 and 1.0 / self.settings.patch_energy_ratio <= ratio <= self.settings.patch_energy_ratio:
             return max(ncc, self.settings.patch_keyframe_ncc), False
-        if vanished < 0.25 and ratio < 1.0 and ncc >= self.settings.patch_blur_ncc:
+        if vanished < 0.25 and self.settings.patch_blur_energy <= ratio < 1.0 and ncc >= self.settings.patch_blur_ncc:
             return max(ncc, self.settings.patch_keyframe_ncc), ncc < self.settings.patch_keyframe_ncc
         return ncc, False
 
