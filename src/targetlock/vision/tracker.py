@@ -23,10 +23,11 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
-    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then re-acquired locally (keyframe flow) or over the
-    whole frame by ORB matching against the keyframes, verified with RANSAC and by the
-    optical-flow keyframe check. In the normal case only a region of interest around the
-    prediction is processed (a ~200 px square for an 80 px window).
+    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then
+    re-acquired locally (keyframe flow) or over the whole frame by ORB matching against the
+    keyframes, verified with RANSAC and by the optical-flow keyframe check. In the normal case
+    only a region of interest around the prediction is processed (a ~200 px square for an 80 px
+    window).
 
 :class:`MarkerTracker` (ArUco marker on the target)
     ``cv2.aruco.ArucoDetector`` in a region around the prediction (whole frame when lost); the
@@ -696,9 +697,10 @@ class FeatureTracker(Tracker):
         both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
         misregistered, not covered) or the energy is evenly lower (down to ``patch_blur_energy``)
-        and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch, 1 when the keyframe's
-        patch itself is uniform or mostly glare (nothing to compare). Also returns whether the
-        patch passed only as a blurred view (a keyframe made from it is not used to re-acquire)."""
+        and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
+        1 when the keyframe's patch itself is uniform or mostly glare (nothing to compare). Also
+        returns whether the patch passed only as a blurred view (a keyframe made from it is not
+        used to re-acquire)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
