@@ -981,17 +981,18 @@ class FeatureTracker(Tracker):
         """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
         keyframe check seeded with the ORB transform."""
         s = self.settings
-        gray, mask = self._orb_prep(frame)
-        kps, desc = self._orb.detectAndCompute(gray, mask)
-        if desc is None or len(kps) < s.reacquire_min_inliers:
-            return None
-        pts = np.array([k.pt for k in kps], np.float32)
-        # One matching pass for the anchor and the most recent keyframe together.
+        # One matching pass for the anchor and the most recent keyframe together; none of them
+        # with enough descriptors (weak texture): the frame's ORB search would be wasted.
         sharp = [k for k in self._recent if k.sharp][-1:]  # the latest not made from a blurred view
         kfs = [k for k in [self._anchor, *sharp]
                if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
         if not kfs:
             return None
+        gray, mask = self._orb_prep(frame)
+        kps, desc = self._orb.detectAndCompute(gray, mask)
+        if desc is None or len(kps) < s.reacquire_min_inliers:
+            return None
+        pts = np.array([k.pt for k in kps], np.float32)
         owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
         query = np.concatenate([k.orb_desc for k in kfs])
         qpts = np.concatenate([k.orb_pts for k in kfs])
