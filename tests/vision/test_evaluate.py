@@ -92,4 +92,6 @@ def test_real_photograph_sequences_with_reference_trackers_in_the_same_run():
         ref = out["references"][who]
         assert ref["overall"]["frames"] == out["overall"]["frames"]          # the same frames
         assert set(ref["content"]) == {"mucosa", "retina"} and ref["overall"]["speed_ratio"] > 0
+        assert set(ref["sequences"]) == {"slow", "retina/slow"}                # per sequence, too
+        assert ref["sequences"]["retina/slow"]["frames"] == out["sequences"]["retina/slow"]["frames"]
         assert out["overall"]["delta_avg"] >= ref["overall"]["delta_avg"]

@@ -279,7 +279,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     plus ``fps``, ``render_ms`` and ``selection_failures``), ``sequences`` (per sequence; keys
     ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
     ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
-    ``content``, with ``speed_ratio`` = the tracker's fps / the reference's), ``settings``, ``rules``.
+    ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
+    like the tracker's), ``settings``, ``rules``.
     Trackers are timed on one OpenCV thread (``fps`` counts only ``update`` calls).
     """
     cfg = validate(settings or EvalSettings())
@@ -293,6 +294,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     renderer = Renderer(cam, rs, contents[0][1], seed=seed)
     threads = cv2.getNumThreads()
     per_seq: dict[str, dict] = {}
+    ref_seq: dict[str, dict[str, dict]] = {who: {} for who in cfg.references}  # reference -> sequence -> metrics
     pooled: dict[tuple[str, str], list] = {}  # (tracker, content) -> [frames, results, t, t_lock, n_lock]
     t_render = 0.0
     n_render = 0
@@ -319,7 +321,9 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
                     acc[3] += dt_lock
                     acc[4] += n_lock
                     acc[5] += not m["selected"]
-                    if who == "tracker":
+                    if who != "tracker":
+                        ref_seq[who][key] = m
+                    else:
                         per_seq[key] = m
                         if progress:
                             progress(f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
@@ -344,7 +348,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     for who in cfg.references:
         o = pool(who, all_contents)
         o["speed_ratio"] = overall["fps"] / o["fps"] if o["fps"] > 0 else float("nan")
-        refs[who] = {"overall": o, "content": {c: pool(who, [c]) for c in all_contents}}
+        refs[who] = {"overall": o, "content": {c: pool(who, [c]) for c in all_contents}, "sequences": ref_seq[who]}
     cfg_d = asdict(cfg)
     for k in ("sequences", "photos", "references"):
         cfg_d[k] = list(getattr(cfg, k))

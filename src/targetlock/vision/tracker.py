@@ -16,11 +16,18 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     the target has not jumped away from its constant-velocity prediction (a false jump).
     Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
     well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
-    returns close to it and overrules a drifted chain. After ``max_misses`` consecutive rejected
-    frames the target is **lost**; it is then re-acquired locally (keyframe flow) or over the
-    whole frame by ORB matching against the keyframes, verified with RANSAC and by the
-    optical-flow keyframe check. In the normal case only a region of interest around the
-    prediction is processed (a ~200 px square for an 80 px window).
+    returns close to it and overrules a drifted chain. When too few corners follow the keyframe
+    (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
+    window stands in for them, accepted only when it agrees with the chain. A rejected frame is
+    **retried** on local-mean-free images (an exposure step that clips or unclips large areas
+    changes the region's normalisation) before it counts as a miss; over misses the prediction
+    coasts on the last velocity. The confidence scales with the share of the target window
+    inside the field of view (a target at the edge is tracked on the features that remain).
+    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then
+    re-acquired locally (keyframe flow) or over the whole frame by ORB matching against the
+    keyframes, verified with RANSAC and by the optical-flow keyframe check. In the normal case
+    only a region of interest around the prediction is processed (a ~200 px square for an 80 px
+    window).
 
 :class:`MarkerTracker` (ArUco marker on the target)
     ``cv2.aruco.ArucoDetector`` in a region around the prediction (whole frame when lost); the
@@ -200,6 +207,12 @@ def _weighted_affine(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndar
     return np.vstack([sol.T, [0.0, 0.0, 1.0]])
 
 
+def _detail(gray: np.ndarray) -> np.ndarray:
+    """High-passed float32 gray (Gaussian sigma 6 px removed): texture without the light fall-off."""
+    f = gray.astype(np.float32)
+    return f - cv2.GaussianBlur(f, (0, 0), 6.0)
+
+
 # ----------------------------------------------------------------------------- feature tracker
 @dataclass(frozen=True)
 class TrackerSettings:
@@ -244,6 +257,13 @@ class TrackerSettings:
     patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
                                       doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
                                           "patch counts as covered")
+    dense_min_ecc: float = param(0.6, lo=0.0, hi=1.0,
+                                 doc="least ECC correlation of the dense keyframe match (weak texture) that agrees with the chain")
+    patch_blur_ncc: float = param(0.3, lo=-1.0, hi=1.0,
+                                  doc="a target patch with less texture energy, evenly spread, that still correlates "
+                                      "this much is the same tissue blurred (weak texture under motion blur), not covered")
+    patch_blur_energy: float = param(0.2, lo=0.0, hi=1.0,
+                                     doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
@@ -264,6 +284,16 @@ class _View:
     to_frame: np.ndarray
     sat: np.ndarray
     raw: np.ndarray
+    flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+
+    def local(self) -> np.ndarray:
+        """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
+        constancy holds across an exposure step even where the region's normalisation changed
+        (clipped pixels, glare that came or went)."""
+        if self.flat is None:
+            f = self.gray.astype(np.float32)
+            self.flat = cv2.convertScaleAbs(f - cv2.GaussianBlur(f, (0, 0), 5.0), alpha=1.5, beta=128.0)
+        return self.flat
 
 
 @dataclass(eq=False)
@@ -274,7 +304,10 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
-    patch: tuple | None = None  # the target's own patch (smoothed gray, not-highlight mask), made on first use
+    sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
+    patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
+    # energy), made on first use
+    detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -285,6 +318,7 @@ class FeatureTracker(Tracker):
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
+        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                    patchSize=31, fastThreshold=10)
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
@@ -298,11 +332,13 @@ class FeatureTracker(Tracker):
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
-                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0}
+                      "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
+                      "retried": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
         self._clock = FrameClock()
+        self._retry = False  # the optical flow runs on local-mean-free images (exposure retry)
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -434,10 +470,14 @@ class FeatureTracker(Tracker):
             return pts, pts
         p0 = _apply(_inv(a.to_frame), pts).astype(np.float32).reshape(-1, 1, 2)
         g = _apply(_inv(b.to_frame), guess).astype(np.float32).reshape(-1, 1, 2)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(a.gray, b.gray, p0, g, winSize=self._win, maxLevel=levels,
+        ga, gb = a.gray, b.gray
+        if self._retry:  # local-mean-free, and only fine levels: large areas that clipped or came
+            # out of clipping change the coarse levels most
+            ga, gb, levels = a.local(), b.local(), min(levels, 1)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, p0, g, winSize=self._win, maxLevel=levels,
                                              criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         back = p1 - (g - p0)  # backward search starts from the predicted motion, not from the answer
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(b.gray, a.gray, p1, back, winSize=self._win, maxLevel=levels,
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(gb, ga, p1, back, winSize=self._win, maxLevel=levels,
                                               criteria=self._lk_crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.settings.fb_max_px)
@@ -512,13 +552,15 @@ class FeatureTracker(Tracker):
         return pts[near], desc[near]
 
     def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
-                       from_anchor: np.ndarray, pts: np.ndarray | None = None) -> _Keyframe | None:
+                       from_anchor: np.ndarray, pts: np.ndarray | None = None, sharp: bool = True) -> _Keyframe | None:
+        """A keyframe of ``view`` (target at ``target`` px); ``sharp``: its view is not a blurred one
+        (only sharp keyframes are matched over the whole frame when re-acquiring)."""
         if pts is None:
             pts = self._features(view, target, 0.5 * self._window)
         if len(pts) < self.settings.min_inliers:
             return None
-        kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor)
-        if self.settings.reacquire:
+        kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor, sharp=sharp)
+        if self.settings.reacquire and sharp:
             kf.orb_pts, kf.orb_desc = self._orb_describe(frame, target)
         self.stats["keyframes"] += 1
         return kf
@@ -580,6 +622,7 @@ class FeatureTracker(Tracker):
         self._window = float(window_px)
         k = max(3, int(self._window // 2) | 1)
         self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
+        self._fov_sum = cv2.integral(self._fov // 255)  # for the share of a window inside the view
         self._vel = np.zeros(2)
         self._vel_known = False
         self._misses = 0
@@ -589,6 +632,7 @@ class FeatureTracker(Tracker):
         self._hann = None
         self._clock.reset()
         self._steps = 1.0             # frame intervals from the last frame to this one
+        self._gap = 0.0               # frame intervals from the last accepted frame to the last frame
 
     def _close(self, kf: _Keyframe, anchor_to_pred: np.ndarray, frac: float) -> bool:
         """The predicted view differs from keyframe ``kf`` by less than ``frac`` of the renewal limits."""
@@ -611,6 +655,16 @@ class FeatureTracker(Tracker):
                 break
         return out
 
+    def _view_share(self, p: np.ndarray) -> float:
+        """Share (0..1) of the target window centred at ``p`` (px) that lies inside the field of view."""
+        h, w = self._fov.shape
+        half = 0.5 * self._window
+        x0, y0 = min(max(round(p[0] - half), 0), w), min(max(round(p[1] - half), 0), h)
+        x1, y1 = min(max(round(p[0] + half), 0), w), min(max(round(p[1] + half), 0), h)
+        ii = self._fov_sum
+        inside = float(ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0])
+        return min(1.0, inside / max(1.0, (2 * half) ** 2))
+
     def _in_view(self, p: np.ndarray, inner: bool = False) -> bool:
         """``p`` (px) lies inside the (shrunk) field of view; ``inner``: a quarter window further in."""
         x, y = int(round(p[0])), int(round(p[1]))
@@ -631,21 +685,22 @@ class FeatureTracker(Tracker):
         x0, y0 = int(off[0]), int(off[1])
         fov = self._fov[y0:y0 + self._side, x0:x0 + self._side].astype(np.float32)
         win = self._hann * cv2.blur(cv2.erode(fov, np.ones((9, 9), np.uint8)), (17, 17)) * (1.0 / 255.0)
-        def detail(g):  # high-pass: the static light fall-off would also peak at zero shift
-            f = g.astype(np.float32)
-            return f - cv2.GaussianBlur(f, (0, 0), 6.0)
-        (dx, dy), response = cv2.phaseCorrelate(detail(self._prev.gray), detail(same.gray), win)
+        # high-pass: the static light fall-off would also peak at zero shift
+        (dx, dy), response = cv2.phaseCorrelate(_detail(self._prev.gray), _detail(same.gray), win)
         if response < 0.05 or math.hypot(dx, dy) > self._side / 3:
             return None
         return np.array([dx, dy])
 
-    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> float:
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
         both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
-        misregistered, not covered); 0 for a uniform patch, 1 when the keyframe's patch itself is
-        uniform or mostly glare (nothing to compare)."""
+        misregistered, not covered) or the energy is evenly lower (down to ``patch_blur_energy``)
+        and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
+        1 when the keyframe's patch itself is uniform or mostly glare (nothing to compare). Also
+        returns whether the patch passed only as a blurred view (a keyframe made from it is not
+        used to re-acquire)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
@@ -661,38 +716,75 @@ class FeatureTracker(Tracker):
             return cv2.GaussianBlur(g, (5, 5), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0), sat == 0
 
         if kf.patch is None:
-            kf.patch = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-        ref, ok_ref = kf.patch
+            ref, ok_ref = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+            kf.patch = ref, ok_ref, cv2.blur(ref * ref, (9, 9)) + 1.0
+        ref, ok_ref, ref_local = kf.patch
         cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
-            return 1.0  # mostly glare: nothing to compare (the glare test is elsewhere)
+            return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
         a, b = ref[ok], cur[ok]
         a = a - a.mean()
         b = b - b.mean()
         e_ref = float(np.dot(a, a))
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
-            return 1.0
+            return 1.0, False
         e_cur = float(np.dot(b, b))
         den = math.sqrt(e_cur * e_ref)
         ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
-        # misregistered or blurred view of the same tissue.
-        box = (9, 9)
-        local = cv2.blur(cur * cur, box)[ok] / (cv2.blur(ref * ref, box)[ok] + 1.0)
-        vanished = float(np.mean(local < 0.1 * np.percentile(local, 90)))
-        if (1.0 / self.settings.patch_energy_ratio <= e_cur / e_ref <= self.settings.patch_energy_ratio
-                and vanished < 0.25):
-            return max(ncc, self.settings.patch_keyframe_ncc)
-        return ncc
+        # misregistered or blurred view of the same tissue; so is an even loss of energy that still
+        # correlates (weak texture under motion blur), while a covered patch does not correlate.
+        local = cv2.blur(cur * cur, (9, 9))[ok] / ref_local[ok]
+        k = int(0.9 * (len(local) - 1))
+        vanished = float(np.mean(local < 0.1 * np.partition(local, k)[k]))
+        ratio = e_cur / e_ref
+        if vanished < 0.25 and 1.0 / self.settings.patch_energy_ratio <= ratio <= self.settings.patch_energy_ratio:
+            return max(ncc, self.settings.patch_keyframe_ncc), False
+        if vanished < 0.25 and self.settings.patch_blur_energy <= ratio < 1.0 and ncc >= self.settings.patch_blur_ncc:
+            return max(ncc, self.settings.patch_keyframe_ncc), ncc < self.settings.patch_keyframe_ncc
+        return ncc, False
 
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
-        """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform."""
+        """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform.
+        Returns (motion or None, kept keyframe points, their matches, the warped region)."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
-        return self._motion(ksrc, kdst, kf.target), ksrc, kdst
+        return self._motion(ksrc, kdst, kf.target), ksrc, kdst, wv
+
+    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+        """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
+        blur, noise, an exposure step): the keyframe's target window (highlights left out) is
+        aligned with this frame's region ``wv`` (already warped by the prediction ``key_to_pred``)
+        by ECC, a correlation that is invariant to gain and offset. Returns (keyframe frame ->
+        this frame, 3x3; the correlation) or None when it does not converge or correlates less
+        than ``dense_min_ecc``."""
+        s = self.settings
+        half = int(0.5 * self._window)
+        t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
+        h, w = kf.view.gray.shape
+        x0, y0 = max(0, t[0] - half), max(0, t[1] - half)
+        x1, y1 = min(w, t[0] + half + 1), min(h, t[1] + half + 1)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        box = (slice(y0, y1), slice(x0, x1))
+        if np.count_nonzero(kf.view.sat[box]) > 0.5 * (y1 - y0) * (x1 - x0):
+            return None
+        if kf.detail is None:
+            kf.detail = _detail(kf.view.gray)
+        warp = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0]], np.float32)
+        try:  # high-passed (the light fall-off moves with the camera, not with the tissue); the
+            # mask (of the input region) leaves this frame's highlights out
+            rho, warp = cv2.findTransformECC(kf.detail[box], _detail(wv.gray), warp, cv2.MOTION_TRANSLATION,
+                                             self._ecc_crit, (~wv.sat).view(np.uint8), 5)
+        except cv2.error:  # did not converge
+            return None
+        d = warp[:, 2].astype(float) - (x0, y0)  # shift in the keyframe's (and the warped region's) pixels
+        if not rho >= s.dense_min_ecc or np.hypot(*d) > s.search_margin_px:
+            return None
+        return key_to_pred @ _translation(d), float(rho)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
@@ -709,14 +801,28 @@ class FeatureTracker(Tracker):
                 return TrackResult(np.full(2, np.nan), 0.0, False, True)
             return res
         res = self._track(frame_bgr, relock=False)
+        if res is None:
+            # Rejected: an exposure step (or glare that came or went) may have changed the region's
+            # normalisation. Retry on local-mean-free images before counting a miss.
+            self._retry = True
+            try:
+                res = self._track(frame_bgr, relock=False)
+            finally:
+                self._retry = False
+            if res is not None:
+                self.stats["retried"] += 1
         if res is not None:
             return res
         self._misses += 1
         self.stats["misses"] += 1
-        self._vel[:] = 0.0
-        self._vel_known = False
+        # The target keeps moving while frames are rejected (blur, a glint, a covered moment): the
+        # prediction coasts on the last velocity over the whole gap since the last accepted frame.
+        self._gap += self._steps
         if self._misses > s.max_misses:
             self.lost = True
+            self._vel[:] = 0.0
+            self._vel_known = False
+            self._gap = 0.0
             self._lost_frames = 0
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
         return TrackResult(self._pos.copy(), 0.0, False, False)
@@ -725,7 +831,7 @@ class FeatureTracker(Tracker):
         """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
         target is lost and this is a cheap local attempt (keyframe evidence required)."""
         s = self.settings
-        steps = self._steps
+        steps = self._steps + self._gap  # frame intervals since the last accepted frame
         pred = self._pos + self._vel * steps  # velocity in px per typical frame interval
         tried_shift = False
         if not relock and not self._vel_known:
@@ -751,14 +857,21 @@ class FeatureTracker(Tracker):
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
         key = None
+        current = None  # (key_to_pred, warped region) of the current keyframe, for the dense fallback
         for kf, least in self._keyframe_candidates(anchor_to_pred):
-            km, ksrc, kdst = self._match_keyframe(view, kf, anchor_to_pred @ _inv(kf.from_anchor))
+            key_to_pred = anchor_to_pred @ _inv(kf.from_anchor)
+            km, ksrc, kdst, wv = self._match_keyframe(view, kf, key_to_pred)
+            if kf is self._key:
+                current = (key_to_pred, wv)
             if km is not None and km[3] >= least:
                 key = (kf, km, kdst)
                 break
         est_chain = _apply(chain[0], self._pos) if chain is not None else None
         if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
             key = None  # a keyframe alone, on a few features only: not trusted
+        dense = None
+        if key is None and current is not None and chain is not None and not relock:
+            dense = self._match_dense(self._key, *current)  # checked against the chain below
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
@@ -777,6 +890,20 @@ class FeatureTracker(Tracker):
                 est = (n_in * est + n_c * est_chain) / (n_in + n_c)
             new_from_anchor = sim @ kf.from_anchor
             next_pts = kdst[inl]
+        elif dense is not None:
+            # Too few corners matched the keyframe, but its whole target window aligns densely.
+            kf = self._key
+            aff, rho = dense
+            est = _apply(aff, kf.target)
+            n_in = 0
+            if np.hypot(*(est - est_chain)) > s.consistency_px:
+                self.stats["inconsistent"] += 1
+                return None
+            est = 0.5 * (est + est_chain)
+            self.stats["dense"] += 1
+            conf = 0.5 * rho
+            new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
+            next_pts = dst[chain[2]]
         elif (chain is not None and not relock and self._misses == 0 and self._chain_only < 3
               and chain[3] >= 2 * s.min_inliers):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
@@ -794,27 +921,30 @@ class FeatureTracker(Tracker):
             return None
         # The target's own patch must still look like the keyframe's: the surrounding features
         # alone cannot tell that an instrument (or blood, smoke) now covers the target itself.
-        if key is not None:
+        if key is not None or dense is not None:
             ref, ref_to_frame = kf, aff.copy()  # the local affine: follows the lens distortion too
         else:
             ref = self._key
             ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
         ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
-        ncc = self._patch_similarity(view, ref, ref_to_frame)
+        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame)
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
         conf *= min(1.0, ncc / s.patch_keyframe_ncc)
         # One-sided support (inliers only on one side: the rest covered or out of view) is an
         # extrapolation: less confident.
-        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        surrounded = bool(np.all(est > lo) and np.all(est < hi))
+        surrounded = len(next_pts) > 0 and bool(np.all(est > next_pts.min(axis=0)) and np.all(est < next_pts.max(axis=0)))
         if not surrounded:
             conf *= 0.5
+        # At the edge of the view (or of the image) only part of the window has image: the
+        # features there carry the estimate, with confidence in proportion to the window's share.
+        conf *= self._view_share(est)
         # Accept.
-        self._chain_only = 0 if key is not None else self._chain_only + 1
-        self._vel_known = not relock and self._misses == 0
+        self._chain_only = 0 if (key is not None or dense is not None) else self._chain_only + 1
+        self._vel_known = not relock
         self._vel = (est - self._pos) / steps if self._vel_known else np.zeros(2)
+        self._gap = 0.0
         self._pos = est
         self._misses = 0
         self.lost = False
@@ -834,13 +964,12 @@ class FeatureTracker(Tracker):
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
         # extrapolation, which drifts at the edge of the view), its own patch unchanged.
-        lo, hi = next_pts.min(axis=0), next_pts.max(axis=0)
-        supported = (bool(np.all(est > lo) and np.all(est < hi)) and self._in_view(est, inner=True)
+        supported = (surrounded and self._in_view(est, inner=True)
                      and ncc >= s.patch_keyframe_ncc)
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
-            kf_new = self._make_keyframe(frame, view, est, new_from_anchor)
+            kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
                 self._recent.append(kf_new)
                 self._key = kf_new
@@ -852,16 +981,18 @@ class FeatureTracker(Tracker):
         """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
         keyframe check seeded with the ORB transform."""
         s = self.settings
+        # One matching pass for the anchor and the most recent keyframe together; none of them
+        # with enough descriptors (weak texture): the frame's ORB search would be wasted.
+        sharp = [k for k in self._recent if k.sharp][-1:]  # the latest not made from a blurred view
+        kfs = [k for k in [self._anchor, *sharp]
+               if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
+        if not kfs:
+            return None
         gray, mask = self._orb_prep(frame)
         kps, desc = self._orb.detectAndCompute(gray, mask)
         if desc is None or len(kps) < s.reacquire_min_inliers:
             return None
         pts = np.array([k.pt for k in kps], np.float32)
-        # One matching pass for the anchor and the most recent keyframe together.
-        kfs = [k for k in [self._anchor, *list(self._recent)[-1:]]
-               if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
-        if not kfs:
-            return None
         owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
         query = np.concatenate([k.orb_desc for k in kfs])
         qpts = np.concatenate([k.orb_pts for k in kfs])
@@ -885,24 +1016,33 @@ class FeatureTracker(Tracker):
         _, kf, key_to_cur = best
         est0 = _apply(key_to_cur, kf.target)
         base = self._crop(frame, est0)
-        km, ksrc, kdst = self._match_keyframe(base, kf, key_to_cur)
+        km, ksrc, kdst, _ = self._match_keyframe(base, kf, key_to_cur)
         if km is None or km[3] < 1.5 * s.min_inliers:
             return None
         aff, sim, inl, n_in = km
         est = _apply(aff, kf.target)
         if np.hypot(*(est - est0)) > 6.0:
             return None
+        conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
+        return self._relocked(est, kf, sim, base, kdst[inl], conf)
+
+    def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
+                  conf: float) -> TrackResult:
+        """Accept a whole-frame re-acquisition: the target at ``est`` (px), matched to keyframe ``kf``
+        by the similarity ``key_to_cur``; ``pts`` (px) are the features to follow from ``view``."""
+        if len(pts) < self.settings.max_features // 2:
+            extra = self._features(view, est, 0.5 * self._window)
+            pts = np.vstack([pts, extra]) if len(extra) else pts
         self._pos = est
         self._vel = np.zeros(2)
         self._vel_known = False
         self._misses = 0
         self.lost = False
-        self._from_anchor = sim @ kf.from_anchor
+        self._from_anchor = key_to_cur @ kf.from_anchor
         self._key = kf
-        self._prev = base
-        self._prev_pts = kdst[inl].astype(np.float32)
+        self._prev = view
+        self._prev_pts = np.asarray(pts, np.float32).reshape(-1, 2)
         self.stats["reacquisitions"] += 1
-        conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
         return TrackResult(est.copy(), float(conf), True, False)
 
 
