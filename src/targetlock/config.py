@@ -79,7 +79,7 @@ def _hints(cls: type) -> dict[str, Any]:
 
 def _collect(cfg: Any, prefix: str, errors: list[str], checks: bool = True) -> None:
     n_before = len(errors)
-    hints = _hints(type(cfg))
+    hints = _hints(cfg.__class__)
     for f in fields(cfg):
         value = getattr(cfg, f.name)
         name = f"{prefix}{f.name}"
