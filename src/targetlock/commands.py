@@ -23,7 +23,8 @@ def _loop_options(p: argparse.ArgumentParser) -> None:
     from .experiments.target_lock import RunConfig
     _common(p)
     p.add_argument("--path", metavar="PATH", help=f"target path: {', '.join(PATH_CHOICES)} or a CSV file (t,x,y,z)")
-    for flag, dotted in (("--latency", "twin.camera.latency"), ("--fps", "twin.camera.fps"),
+    for flag, dotted in (("--latency", "twin.camera.latency"), ("--assumed-latency", "knowledge.latency"),
+                         ("--fps", "twin.camera.fps"),
                          ("--i-gain", "controller.i_gain"), ("--p-gain", "controller.p_gain"),
                          ("--hc-width", "controller.hc_width"), ("--seconds", "loop.seconds"),
                          ("--noise", "tracker.noise_px"), ("--drop", "tracker.drop_probability"),

@@ -39,6 +39,16 @@ def test_zero_latency_lowers_the_peaks(linear):
         assert linear[(k, 0.0)]["peak_px"] < linear[(k, 0.4)]["peak_px"]
 
 
+def test_a_latency_the_lab_did_not_measure_is_not_leaked_through_the_time_stamps():
+    """ik uses the frames' capture times; told 0.4 s while the video has 0.1 s, it must do worse than
+    when the lab measured the 0.1 s (with_latency), as it would on a rig."""
+    base = with_controller(dataclasses.replace(BASE, loop=LoopConfig(seconds=12.0)), "ik")
+    measured = run_target_lock(with_latency(base, 0.1))
+    unmeasured = run_target_lock(dataclasses.replace(base, twin=with_latency(base, 0.1).twin))
+    assert "latency 0.4 s" in unmeasured["knowledge"] and "latency 0.1 s" in measured["knowledge"]
+    assert unmeasured["rms_px"] > 1.2 * measured["rms_px"]
+
+
 def test_step_response_overshoot_grows_with_i():
     cfg = dataclasses.replace(BASE, loop=LoopConfig(seconds=5.0, metrics_after=0.0),
                               controller=ControllerConfig(kind="pi"))

@@ -27,7 +27,8 @@ class KnowledgeConfig:
     source: str = param("nominal", choices=KNOWLEDGE_SOURCES,
                         doc="'nominal': the values below; 'oracle': the simulated plant's truth (labelled oracle)")
     preset: str = param("calibrated", choices=PRESETS, doc="endoscope preset the controller assumes")
-    latency: float = param(0.4, unit="s", lo=0.0, hi=5.0, doc="assumed video latency (report: 0.4 s)")
+    latency: float = param(0.4, unit="s", lo=0.0, hi=5.0,
+                           doc="assumed video latency (report: 0.4 s); frames are stamped with it, as a rig stamps them")
     depth: float = param(0.12, unit="m", lo=0.005, hi=2.0, doc="assumed target distance (report: 12 cm)")
     fx: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along x")
     fy: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along y")

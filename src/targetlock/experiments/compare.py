@@ -10,8 +10,11 @@ __all__ = ["compare", "plot_compare", "with_latency", "with_controller"]
 
 
 def with_latency(cfg: RunConfig, latency: float) -> RunConfig:
+    """``cfg`` with a video latency of ``latency`` s that the lab has measured: the plant's and the one
+    the controller assumes (and the frames are stamped with) move together."""
     twin = dataclasses.replace(cfg.twin, camera=dataclasses.replace(cfg.twin.camera, latency=float(latency)))
-    return dataclasses.replace(cfg, twin=twin)
+    knowledge = dataclasses.replace(cfg.knowledge, latency=float(latency))
+    return dataclasses.replace(cfg, twin=twin, knowledge=knowledge)
 
 
 def with_controller(cfg: RunConfig, kind: str) -> RunConfig:
