@@ -98,7 +98,8 @@ def test_moves_reach_the_setpoint_at_the_drive_models_rate():
         assert np.all(np.abs(mid) <= cfg.ticks(cfg.profile_velocity) * (elapsed + 0.01) + 30)
         assert abs(mid[0]) > 3000            # but it is moving
         assert wait_until(lambda: np.all(np.abs(drives.positions() - target) <= 25), 1.0)
-        assert np.allclose(sims.angles(), target * cfg.rad_per_tick, atol=4e-4)
+        # The reported position is a PDO snapshot; the drive itself settles within the same tolerance.
+        assert wait_until(lambda: np.allclose(sims.angles(), target * cfg.rad_per_tick, atol=4e-4), 1.0)
         assert all(s.stats["setpoints"] == 1 for s in sims.drives)
 
 
