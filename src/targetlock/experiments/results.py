@@ -202,10 +202,11 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   handle gain), the delay behind the frames' time stamps and the backlash while it runs, and steers as a
   latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the camera
   will show once the motion already under way is seen (a Smith predictor in image space), so the latency
-  no longer forces a low gain. Until a supervisor finds the model predicting the image — just after
-  engaging, after a tracker jump — it acts as if the target were 1.5 cm away (small steps), and it pushes
+  no longer forces a low gain. After engaging, until a supervisor finds the model predicting the image,
+  it acts as if the target were 1.5 cm away (small steps), and it pushes
   more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm). It keeps the target in
-  view at 1–2 cm where every fixed-gain controller loses it. Its cost: a slower first second far away
+  view at 1–2 cm where every fixed-gain controller loses it, and on the report's paths it is the best
+  controller that does not know the plant. Its cost: a slower first second far away
   (the caution), and a larger lag than PI on a slowly drifting target at 10–15 cm (the predictor sees the
   target's motion one latency late); extrapolating the target's own motion was tried and did not pay for
   its noise. On a wrongly stamped latency it depends on the delay estimate.
