@@ -203,7 +203,7 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the camera
   will show once the motion already under way is seen (a Smith predictor in image space), so the latency
   no longer forces a low gain. After engaging, until a supervisor finds the model predicting the image,
-  it acts as if the target were 1.5 cm away (small steps), and it pushes
+  it acts as if the target were 1 cm away, the nearest it is made for (small steps), and it pushes
   more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm). It keeps the target in
   view at 1–2 cm where every fixed-gain controller loses it, and on the report's paths it is the best
   controller that does not know the plant. Its cost: a slower first second far away
