@@ -20,7 +20,7 @@ from targetlock.model.camera import CameraParams
 from targetlock.model.endoscope import EndoscopeParams
 from targetlock.rig.simulated import ObservationNoise
 
-from .twin_harness import NOMINAL_TIP_GAIN, NOMINAL_WIDTH, STAMP_LATENCY, Lock, make_twin, nominal_prior, sweep_truth
+from twin_harness import NOMINAL_TIP_GAIN, NOMINAL_WIDTH, STAMP_LATENCY, Lock, make_twin, nominal_prior, sweep_truth
 
 J_NEAR = float(np.abs(nominal_prior(np.zeros(2), 0.01)).max())     # px/rad at 1 cm, nominal
 

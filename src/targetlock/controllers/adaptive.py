@@ -143,7 +143,7 @@ class AdaptiveController(Controller):
             return None
         # Near (a large J) the cables' stick-slip moves the image in big jumps: push more slowly there.
         g = cfg.adaptive_servo_gain * min(1.0, math.sqrt(self.prior_scale / (inflate * est.gain_scale)))
-        return self._clamp_integrator(motor + g * dm)
+        return motor + g * dm              # the base class clips it to the set-point range
 
     def signals(self) -> dict[str, float]:
         """The estimated image Jacobian's direct terms (px per handle rad), the supervisor's trust

@@ -46,7 +46,7 @@ class ControllerConfig:
     kind: str = param("pi-hc", choices=CONTROLLERS, doc="controller: PI, PI + hysteresis compensation (model 1 / 2), "
                                                         "inverse kinematics, PI with latency prediction, self-calibrating (online estimation)")
     i_gain: float = param(-1.0, unit="tick/(px·s)", lo=-1.0, hi=1e5,
-                          doc="integral gain I of Eq. 4.2; -1: the controller's default (300 as in the report, pi-smith 800)")
+                          doc="integral gain I of Eq. 4.2; -1: the controller's default (300 as in the report, pi-smith 800; ik and adaptive have none)")
     p_gain: float = param(0.0, unit="tick/px", lo=0.0, hi=1e5, doc="proportional gain P of Eq. 4.2 (report: 0)")
     hc_width: float = param(0.2, lo=0.0, hi=2.0, doc="w: compensation width per measured motor angle (model 1, report: 0.2)")
     hc2_slope: float = param(0.10, lo=0.0, hi=2.0,

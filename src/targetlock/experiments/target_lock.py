@@ -209,9 +209,10 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
     vision = None
     if cfg.vision and frame_hook is None and not hardware:
         from ..vision.pipeline import VisionPipeline
-        # Without a video or a run folder (frames into its MCAP) only the tracker reads the frames.
+        # Partial frames where only the tracker reads them: the pipeline renders whole frames while a
+        # video or the run folder's MCAP (its on_frame) takes them.
         vision = frame_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed, video=video,
-                                             regions=video is None and run is None)
+                                             regions=True)
     rig = rig if hardware else build_rig(cfg, frame_hook)
     ctrl = build_controller(cfg, rig)
     realtime = cfg.realtime or hardware

@@ -173,9 +173,15 @@ class SimulatedRig(Rig):
 
     def truth_offset(self, t: float | None = None) -> np.ndarray:
         """Where the target really is in the image now (px from centre); NaN if not in view."""
+        return self._image_offset(self._target_in_camera(self.time if t is None else t))
+
+    def _target_in_camera(self, t: float) -> np.ndarray:
+        """The target in the camera frame at time ``t`` (m)."""
+        return world_to_camera(self.camera_pose(), self.scene.target_position(t))
+
+    def _image_offset(self, p: np.ndarray) -> np.ndarray:
+        """Image offset (px from centre) of the camera-frame point ``p``; NaN outside the image."""
         cam = self.twin.camera
-        t = self.time if t is None else t
-        p = world_to_camera(self.camera_pose(), self.scene.target_position(t))
         px = project(p, cam)
         if not (0.0 <= px[0] < cam.width and 0.0 <= px[1] < cam.height):
             return np.array([np.nan, np.nan])
@@ -194,11 +200,12 @@ class SimulatedRig(Rig):
         self._integrate_to(until)
 
     def _capture(self, t: float) -> None:
-        truth = self.truth_offset(t)
+        target = self._target_in_camera(t)
+        truth = self._image_offset(target)
         if self.frame_hook is not None:
             obs = self.frame_hook(self, t, truth)
         else:
-            obs = self._ideal_observation(t, truth)
+            obs = self._ideal_observation(t, truth, float(target[2]))
         self.observations.frame_log.record(t, obs is not None and obs.valid)
         if obs is not None:
             cam = self.twin.camera
@@ -211,7 +218,9 @@ class SimulatedRig(Rig):
             self.observations.line.push(t, dataclasses.replace(obs, capture_time=stamped, arrival_time=arrival),
                                         arrival=arrival)
 
-    def _ideal_observation(self, t: float, truth: np.ndarray) -> Observation | None:
+    def _ideal_observation(self, t: float, truth: np.ndarray, depth: float) -> Observation | None:
+        """The ideal tracker's report of a frame: ``truth`` offset (px) and the target's ``depth`` in
+        the camera (m), with the configured imperfections."""
         nz = self.noise
         rng = self.rng
         if nz.drop_probability and rng.random() < nz.drop_probability:
@@ -225,7 +234,6 @@ class SimulatedRig(Rig):
             offset = offset + nz.outlier_px * np.array([np.cos(angle), np.sin(angle)])
         # Relative apparent size: the target's depth when it was selected (the scene distance) over its
         # depth in the camera now, as a template tracker's scale would report it.
-        depth = float(world_to_camera(self.camera_pose(), self.scene.target_position(t))[2])
         scale = self.twin.scene.distance / depth if visible and depth > 0 else math.nan
         if visible and nz.scale_noise:
             scale *= 1.0 + self._scale_rng.normal(0.0, nz.scale_noise)
