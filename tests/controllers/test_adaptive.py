@@ -6,6 +6,8 @@ import pytest
 from targetlock.controllers import AdaptiveController, ControllerConfig, KnowledgeConfig, nominal_knowledge
 from targetlock.experiments.target_lock import RunConfig, run_target_lock
 from targetlock.loop.runner import LoopConfig
+from targetlock.model.drives import DriveParams
+from targetlock.model.endoscope import EndoscopeParams, initial_state, pack_params, simulate
 from targetlock.rig.base import Observation
 
 RPT = 1.6e-5
@@ -16,15 +18,17 @@ def make(**kw):
                               upper=np.full(2, 2.0), control_dt=0.02, knowledge=nominal_knowledge())
 
 
-def drive(c, image, seconds=8.0, frame=0.05, width=0.068):
-    """Step the controller with a motor sweep, and frames 0.3 s late showing ``image(tip)`` of the tip,
-    which follows the motor through a backlash of ``width`` (rad, the calibrated scope's)."""
+def drive(c, image, seconds=8.0, frame=0.05):
+    """Step the controller with a motor sweep, and frames 0.3 s late showing ``image(tip)`` of the tip
+    (in equivalent handle rad: tip angle / assumed tip gain) of the nominal scope, the one the
+    controller assumes, driven by that sweep."""
     c.reset(np.zeros(2), 0.0)
     t = 0.02 * np.arange(int(seconds / 0.02))
     m = np.column_stack([0.3 * np.sin(1.5 * t), 0.2 * np.sin(1.1 * t)])
-    tip = np.zeros_like(m)
-    for k in range(1, t.size):
-        tip[k] = np.clip(tip[k - 1], m[k] - width / 2, m[k] + width / 2)
+    drives = DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3)
+    states = simulate(initial_state(1), pack_params(EndoscopeParams(), drives), np.repeat(m[:, None, :], 1, axis=1),
+                      0.001, substeps=20)
+    tip = states[:, 0, 2:4] / c.cfg.tip_gain
     lag = int(round(0.3 / 0.02))
     for k in range(1, t.size):
         obs = None
@@ -55,11 +59,11 @@ def test_a_tracker_jump_lowers_the_trust_and_leaves_the_jacobian_alone():
     drive(c, lambda m, t: j @ m)
     trust, jac = c.trust, c.jacobian.j.copy()
     assert trust > 0.8
-    m = c.history.at(8.0)
-    for k in range(2):          # the target jumps 390 px between two frames; the motors barely moved
+    m = np.array([0.3 * np.sin(1.5 * 7.98), 0.2 * np.sin(1.1 * 7.98)])     # drive()'s last motor, now held
+    tip = c.effective.copy()                # the plant is the controller's nominal scope: its tip, at rest
+    for k in range(12):         # the target jumps 390 px between two frames and stays there
         t = 8.02 + 0.05 * k
-        m = m + 0.002
-        c.step(Observation(capture_time=t - 0.3, offset=j @ m + [300.0, -250.0], valid=True), m, t)
+        c.step(Observation(capture_time=t - 0.3, offset=j @ tip + [300.0, -250.0], valid=True), m, t)
     assert c.trust < trust - 0.3
     np.testing.assert_allclose(c.jacobian.j, jac, rtol=0.02, atol=5.0)
 

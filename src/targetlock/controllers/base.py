@@ -65,9 +65,6 @@ class ControllerConfig:
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
     adaptive_servo_gain: float = param(0.3, lo=0.01, hi=1.0, doc="adaptive: fraction of the predicted error removed per frame")
-    adaptive_backlash_estimate: bool = param(False, doc="adaptive: play operator uses the online backlash estimate (else the nominal)")
-    adaptive_max_backlash: float = param(0.1, unit="rad", lo=0.0, hi=1.0,
-                                         doc="adaptive: largest backlash width (handle) its play operator models")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")
