@@ -68,7 +68,8 @@ def bench_model(seconds: float = 200.0, batch_size: int = 1000, batch_seconds_si
 
 def bench_loop(seconds: float = 40.0, repeats: int = 3) -> dict:
     """Closed loop (PI + compensation, ideal tracker, linear path) real-time factor on one core, and
-    the mean time of one inverse-kinematics controller step that processes a new observation."""
+    the mean time of one ``ik`` and one ``adaptive`` controller step that processes a new observation
+    (adaptive: estimators and its online endoscope model)."""
     from .controllers import ControllerConfig
     from .experiments.target_lock import RunConfig, build_controller, build_rig, run_target_lock
     from .loop.runner import LoopConfig
@@ -81,22 +82,26 @@ def bench_loop(seconds: float = 40.0, repeats: int = 3) -> dict:
         walls.append(run_target_lock(cfg)["wall_seconds"])
     wall = min(walls)
 
-    ik_cfg = dataclasses.replace(cfg, controller=ControllerConfig(kind="ik"))
-    rig = build_rig(ik_cfg)
-    ctrl = build_controller(ik_cfg, rig)
-    motor = np.array([-0.2, 0.05])
-    ctrl.reset(motor, 0.0)
-    rng = np.random.default_rng(0)
+    def step_ms(kind: str, n: int = 2000) -> float:
+        """Mean time (ms) of one controller step that processes a new observation."""
+        kind_cfg = dataclasses.replace(cfg, controller=ControllerConfig(kind=kind))
+        ctrl = build_controller(kind_cfg, build_rig(kind_cfg))
+        motor = np.array([-0.2, 0.05])
+        ctrl.reset(motor, 0.0)
+        rng = np.random.default_rng(0)
+        obs = [Observation(capture_time=0.02 * k, offset=rng.uniform(-150, 150, 2), valid=True) for k in range(n + 50)]
+        for k in range(50):
+            ctrl.step(obs[k], motor, 0.02 * (k + 1))
+        t0 = time.perf_counter()
+        for k in range(50, 50 + n):
+            ctrl.step(obs[k], motor, 0.02 * (k + 1))
+        return (time.perf_counter() - t0) / n * 1e3
+
     n = 2000
-    obs = [Observation(capture_time=0.02 * k, offset=rng.uniform(-150, 150, 2), valid=True) for k in range(n + 50)]
-    for k in range(50):
-        ctrl.step(obs[k], motor, 0.02 * (k + 1))
-    t0 = time.perf_counter()
-    for k in range(50, 50 + n):
-        ctrl.step(obs[k], motor, 0.02 * (k + 1))
-    ik_ms = (time.perf_counter() - t0) / n * 1e3
+    ik_ms = step_ms("ik", n)
+    adaptive_ms = step_ms("adaptive", n)
     return {"realtime_factor": seconds / wall, "sim_seconds": seconds, "wall_seconds": wall,
-            "controller": "pi-hc", "ik_step_ms": ik_ms, "ik_steps": n, **bench_frame_to_setpoint()}
+            "controller": "pi-hc", "ik_step_ms": ik_ms, "adaptive_step_ms": adaptive_ms, "ik_steps": n, **bench_frame_to_setpoint()}
 
 
 def bench_frame_to_setpoint(seconds: float = 10.0, fps: float = 24.3, rate: float = 50.0) -> dict:

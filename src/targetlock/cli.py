@@ -233,7 +233,7 @@ def _bench(args: argparse.Namespace) -> int:
     elif args.what == "loop":
         from .bench import bench_loop
         res = bench_loop()
-        print(f"loop: real-time factor {res['realtime_factor']:.0f}; IK step {res['ik_step_ms']:.4f} ms")
+        print(f"loop: real-time factor {res['realtime_factor']:.0f}; step of ik {res['ik_step_ms']:.4f} ms, of adaptive {res['adaptive_step_ms']:.4f} ms")
     elif args.what == "robustness":
         from .experiments.robustness import bench_robustness
         res = bench_robustness(args.cases, args.seed, workers=args.workers)
