@@ -199,15 +199,19 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   depth, focal length), never the simulated plant's truth; `knowledge.source = "oracle"` hands the truth
   over and every result says which it was. In the report's scenarios the nominal values are the plant's.
 * **`adaptive`** (ours) assumes almost nothing: it estimates the image Jacobian (distance, focal length,
-  handle gain), the delay behind the frames' time stamps and the backlash while it runs, and steers as a
-  latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the camera
-  will show once the motion already under way is seen (a Smith predictor in image space), so the latency
-  no longer forces a low gain. After engaging, until a supervisor finds the model predicting the image,
-  it acts as if the target were 1 cm away, the nearest it is made for (small steps), and it pushes
-  more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm). It keeps the target in
-  view at 1–2 cm where every fixed-gain controller loses it, and on the report's paths it is the best
-  controller that does not know the plant. Its cost: a slower first second far away
-  (the caution), and a larger lag than PI on a slowly drifting target at 10–15 cm (the predictor sees the
-  target's motion one latency late); extrapolating the target's own motion was tried and did not pay for
-  its noise. On a wrongly stamped latency it depends on the delay estimate.
+  handle gain) and the delay behind the frames' time stamps while it runs, takes its own tip motion
+  from an online copy of the endoscope model with the assumed parameters (so taking up the cables'
+  slack and turning the friction around are not mistaken for tip motion), and steers as a
+  latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the
+  camera will show once the motion already under way is seen (a Smith predictor in image space), so
+  the latency no longer forces a low gain. After engaging, until a supervisor finds the model
+  predicting the image, it acts as if the target were 1 cm away, the nearest it is made for (small
+  steps), and it pushes more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm).
+  It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, and on the
+  report's paths it is the best controller that does not know the plant. Its costs: a slower first
+  second far away (the caution); a larger lag than PI on a slowly drifting target at 10–15 cm (the
+  predictor sees the target's motion one latency late; extrapolating the target's own motion was
+  tried and did not pay for its noise); and on a scope with much more slack than assumed, a hunt
+  across the unmodelled dead band (the nominal model says the tip moves before it does). On a
+  wrongly stamped latency it depends on the delay estimate.
 """
