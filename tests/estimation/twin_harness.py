@@ -10,6 +10,7 @@ import numpy as np
 from targetlock.controllers.pi import History
 from targetlock.estimation import BacklashFitEstimator, DelayFitEstimator, JacobianEstimator, prior_jacobian
 from targetlock.estimation.probe import nominal_width
+from targetlock.estimation.tip_model import hysteresis_loop, triangle
 from targetlock.model.endoscope import EndoscopeParams
 from targetlock.model.camera import CameraParams, project, world_to_camera
 from targetlock.model.kinematics import tip_pose
@@ -60,18 +61,14 @@ class SweepTruth:
 
 def sweep_truth(twin: TwinConfig, amplitude: float = 0.6, rate: float = 0.2) -> SweepTruth:
     """Drive each handle axis alone in a slow triangle (``rate`` rad/s, ±``amplitude`` rad about the
-    start) and read the twin's tip angles (oracle). On the second cycle, over the middle 60 % of the tip
-    range (where the tip moves on both branches): the slope is the fit of tip on handle of each branch
-    (averaged), the width the mean handle distance between the rising and the falling branch at equal
-    tip angle — the handle travel lost at a reversal."""
+    start, two cycles) and read the twin's tip angles (oracle); slope and width of the loop by
+    :func:`hysteresis_loop` (the handle travel lost at a reversal, over the middle of the tip range)."""
     slope, width = np.zeros(2), np.zeros(2)
+    t, tri = triangle(amplitude, rate)
     for a in range(2):
         rig = SimulatedRig(twin)
         rig.drives.home()
         start = rig.handle_angles()
-        period = 4 * amplitude / rate
-        t = np.arange(0.0, 2 * period, 0.01)
-        tri = amplitude * (2 / math.pi) * np.arcsin(np.sin(2 * math.pi * t / period))
         h, tip = np.empty(t.size), np.empty(t.size)
         for k, tk in enumerate(t):
             sp = start.copy()
@@ -79,16 +76,7 @@ def sweep_truth(twin: TwinConfig, amplitude: float = 0.6, rate: float = 0.2) -> 
             rig.drives.send_setpoints(np.rint(sp / rig.drives.rad_per_tick))
             rig.advance(tk)
             h[k], tip[k] = rig.handle_angles()[a], rig.tip_angles()[a]
-        second = t >= period                         # the first cycle reaches the loop from the start
-        lo, hi = np.quantile(tip[second], [0.2, 0.8])
-        dh = np.gradient(h)
-        mid = second & (tip > lo) & (tip < hi)
-        up, down = mid & (dh > 0), mid & (dh < 0)
-        s_up, c_up = np.polyfit(h[up], tip[up], 1)
-        s_dn, c_dn = np.polyfit(h[down], tip[down], 1)
-        slope[a] = 0.5 * (s_up + s_dn)
-        levels = np.linspace(lo, hi, 20)
-        width[a] = float(np.mean((levels - c_up) / s_up - (levels - c_dn) / s_dn))
+        slope[a], width[a] = hysteresis_loop(t, h, tip)
     k = twin.endoscope.cable_arm ** 2 * twin.endoscope.cable_stiffness
     return SweepTruth(slope=slope, width=width, tip_lag=twin.endoscope.mu_f / (k + twin.endoscope.tip_stiffness))
 

@@ -15,7 +15,9 @@ output stays within stated physical limits whatever the input (noise, dropped fr
   axis by fitting a play operator (robust to the target's own motion); :func:`nominal_width` its prior;
 * :class:`DepthEstimator` — the target depth, from the Jacobian's size and (where observable) the
   tracker's scale;
-* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging.
+* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging;
+* :class:`TipModel` — the assumed (nominal) endoscope run online on the measured handle angles:
+  modelled tip angles with hysteresis and stick-slip, and their recent history.
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ from .delay import DelayEstimator, DelayFitEstimator
 from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
 from .probe import ProbeSignal, nominal_width
+from .tip_model import TipModel
 
 __all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
            "BacklashFitEstimator", "DepthEstimator",
-           "ProbeSignal", "nominal_width"]
+           "ProbeSignal", "nominal_width", "TipModel"]
