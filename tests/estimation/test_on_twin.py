@@ -68,10 +68,10 @@ TRACKING = [("calibrated", 0.05, 0.5, 0.0), ("calibrated", 0.015, 0.3, 0.02), ("
             ("looped-shaft", 0.05, 0.3, 0.0)]
 
 
-def track(preset, distance, latency, jitter, noise=None, truth=None):
+def track(preset, distance, latency, jitter, noise=None, truth=None, jacobian="rls"):
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
     lock = Lock(twin, noise=noise or ObservationNoise(noise_px=0.2), probe=probe(), loop_gain=0.8, scheduled=False,
-                truth=truth)
+                truth=truth, jacobian=jacobian)
     return twin, lock, lock.run(30.0)
 
 
@@ -114,16 +114,17 @@ def test_tracking_jacobian_size_within_20_percent(preset, distance, latency, jit
     assert np.median(size[t > 10.0]) == pytest.approx(1.0, abs=0.2)
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: in closed-loop tracking the RLS Jacobian matrix comes out "
-                                       "20-45 % off (cross terms and the axes' balance; its size is better, above): "
-                                       "J shows only where the motor's speed changes, at reversals, where the play "
-                                       "model is coarsest, and the motor follows the target")
-@pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:2])
+@pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:3])
 def test_tracking_jacobian_within_15_percent(preset, distance, latency, jitter):
+    """The whole matrix (Frobenius, cross terms included), median over 15-30 s, by the
+    TipJacobianEstimator on the nominal tip model. Measured over 3 noise seeds: 5 cm 10-12 %, 1.5 cm
+    5 %, 12 cm 9-11 % (the play-operator RLS: 38 %, 23-26 %, 43 %, mostly because J depends on where
+    the target is in the image, 100-200 px off centre here, which one constant J cannot follow)."""
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
-    twin, lock, trace = track(preset, distance, latency, jitter, truth=sweep_truth(twin))
+    twin, lock, trace = track(preset, distance, latency, jitter, truth=sweep_truth(twin), jacobian="tip")
     err = [np.linalg.norm(j - jt) / np.linalg.norm(jt) for j, jt in zip(trace.j, trace.j_true)]
     assert np.median(err[len(err) // 2:]) < 0.15
+    assert lock.tip_jac.depth == pytest.approx(distance, rel=0.35)
 
 
 @pytest.mark.parametrize("distance", [0.015, 0.10])
