@@ -7,6 +7,8 @@ output stays within stated physical limits whatever the input (noise, dropped fr
 
 * :class:`JacobianEstimator` — image Jacobian, px of target motion per handle rad, 2×2 (cross
   coupling included; it carries the working distance, the camera and the handle gain);
+  :class:`TipJacobianEstimator` the same relative to a :class:`TipModel`'s tip, position-dependent
+  through the camera model (translation and rotation parts, one target depth), by windowed least squares;
 * :class:`DelayEstimator` — the delay between the motor motion and the image motion it causes,
   relative to the frames' capture time stamps (a wrongly stamped or unknown video latency);
   :class:`DelayFitEstimator` the same by an output-error fit that a closed loop does not bias;
@@ -26,8 +28,10 @@ from .delay import DelayEstimator, DelayFitEstimator
 from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
 from .probe import ProbeSignal, nominal_width
+from .tip_jacobian import TipJacobianEstimator, image_jacobian_parts
 from .tip_model import TipModel
 
 __all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
            "BacklashFitEstimator", "DepthEstimator",
-           "ProbeSignal", "nominal_width", "TipModel"]
+           "ProbeSignal", "nominal_width", "TipModel", "TipJacobianEstimator",
+           "image_jacobian_parts"]
