@@ -107,7 +107,7 @@ class Lock:
     def __init__(self, twin: TwinConfig, *, noise: ObservationNoise | None = None, loop_gain: float = 1.2,
                  probe=None, truth: SweepTruth | None = None, fixed_width: float | None = None,
                  fixed_delay: float | None = None, scheduled: bool = True, jac_kw: dict | None = None,
-                 min_span: float = 0.0, jacobian: str = "rls") -> None:
+                 min_span: float = 0.0, jacobian: str = "rls", tip_endoscope: EndoscopeParams | None = None) -> None:
         self.fixed_width, self.fixed_delay, self.scheduled = fixed_width, fixed_delay, scheduled
         self.probe_start = 0.0
         self.min_span = min_span
@@ -122,7 +122,7 @@ class Lock:
         self.delay = DelayFitEstimator(initial=0.0)
         self.tip_model = self.tip_jac = None
         if jacobian == "tip":
-            self.tip_model = TipModel(EndoscopeParams())                       # nominal knowledge
+            self.tip_model = TipModel(tip_endoscope or EndoscopeParams())      # nominal knowledge by default
             self.tip_model.reset(0.0, m)
             self.tip_jac = TipJacobianEstimator(camera=CameraParams(), tip_length=0.12, n_elements=30,
                                                 slope=self.tip_model.sweep(m)[0], depth=0.12,

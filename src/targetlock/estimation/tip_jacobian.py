@@ -27,8 +27,8 @@ removed by projecting both sides onto the complement of a cubic spline in time (
 s: a target has mass, its image velocity is smooth on that scale; the tip's stick-slip and reversals
 are not), then θ is fitted by least squares with one robust reweighting (tracker outliers and jumps
 dropped at 3× the median residual). The modelled tip is read at each frame's capture time minus the
-caller's delay minus a small extra shift; the shift (``shifts``, ±60 ms) that fits best is chosen per
-window and the median over recent windows used (a 30 ms misalignment costs ~10 % of J; the play-based
+caller's delay minus a small extra shift; the shift (within ``max_shift``, ±60 ms) that fits best is
+chosen per window and the median over recent windows used (a 30 ms misalignment costs ~10 % of J; the play-based
 delay estimate is that far off). A window updates θ only if the modelled tip moved on both axes.
 
 Output: J in px per *handle* rad, ``J_tip · diag(slope)`` with the assumed scope's moving-branch slope
@@ -97,7 +97,7 @@ class TipJacobianEstimator:
     def __init__(self, *, camera: CameraParams, tip_length: float, n_elements: int, slope: np.ndarray,
                  depth: float, sv_min: float = 50.0, sv_max: float = 8000.0, window: float = 8.0,
                  knot: float = 0.75, every: int = 5, min_frames: int = 40,
-                 shifts: np.ndarray = np.arange(-0.06, 0.0601, 0.01), answers: int = 9,
+                 delays: np.ndarray = np.arange(-0.3, 0.8001, 0.01), max_shift: float = 0.06, answers: int = 9,
                  max_coupling: float = 0.5, gain_range: tuple[float, float] = (0.5, 2.0),
                  depth_range: tuple[float, float] = (0.005, 0.5), min_tip_motion: float = 0.02,
                  max_gap: float = 0.5, gain_ridge: float = 0.1) -> None:
@@ -115,7 +115,8 @@ class TipJacobianEstimator:
         self.slope = slope
         self.sv_min, self.sv_max, self.max_coupling = sv_min, sv_max, max_coupling
         self.window, self.knot, self.every, self.min_frames = float(window), float(knot), int(every), int(min_frames)
-        self.shifts = np.asarray(shifts, dtype=float)
+        self.delays = np.asarray(delays, dtype=float)
+        self.max_shift = float(max_shift)
         self.gain_range, self.depth_range = gain_range, depth_range
         self.min_tip_motion, self.max_gap, self.gain_ridge = min_tip_motion, max_gap, gain_ridge
         self.theta = np.array([1.0 / depth, 1.0 / depth, 1.0, 1.0])
@@ -123,12 +124,18 @@ class TipJacobianEstimator:
         self._prior_j: np.ndarray | None = None
         self.j = np.full((2, 2), np.nan)
         """px per handle rad at the newest frame (NaN before the first frame)."""
-        self.shift = 0.0
-        """s, the extra delay of the tip model chosen (median over recent windows)."""
+        self.delay = math.nan
+        """s, the delay of the image behind the stamps this fit uses (the tip's lag excluded): the
+        median over recent windows of the best within ±``max_shift`` of the caller's; NaN before any."""
+        self._caller_delay = 0.0
         self.updates = 0
         """Windows that moved θ."""
         self.rejected = 0
         """Windows whose fit was physically impossible (kept the last θ)."""
+        self.explained = 0.0
+        """Fraction [0, 1] of the last window's image motion (the target's smooth motion removed, outliers
+        dropped) that the fitted model explains (0 for a rejected window): how well the modelled tip
+        accounts for what the camera shows — a supervisor's measure of trust."""
         # Per frame: capture time, offset, modelled tip at each shift (k, 2), A and R at the frame.
         self.frames: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._answers: deque[float] = deque(maxlen=answers)
@@ -170,10 +177,13 @@ class TipJacobianEstimator:
             return
         if np.max(np.abs(offset)) > 1e5 or (self.frames and capture_time <= self.frames[-1][0]):
             return
-        tips = np.asarray(tip_at(capture_time - delay - self.shifts), dtype=float).reshape(self.shifts.size, 2)
+        # The modelled tip at every candidate delay, read now (the model keeps a few seconds): a later
+        # change of the caller's delay estimate does not invalidate the frames already stored.
+        tips = np.asarray(tip_at(capture_time - self.delays), dtype=float).reshape(self.delays.size, 2)
         if not np.all(np.isfinite(tips)):
             return
-        centre = tips[int(np.argmin(np.abs(self.shifts - self.shift)))]
+        self._caller_delay = float(np.clip(delay, self.delays[0], self.delays[-1]))
+        centre = tips[self._nearest(self.delay if math.isfinite(self.delay) else self._caller_delay)]
         a, r = self._parts(offset, centre)
         self.frames.append((float(capture_time), offset, tips, a, r))
         while self.frames[0][0] < capture_time - self.window:
@@ -190,6 +200,14 @@ class TipJacobianEstimator:
     def _parts(self, offset, tip):
         return image_jacobian_parts(offset, tip, camera=self.camera, tip_length=self.geometry[0],
                                     n_elements=self.geometry[1])
+
+    def _nearest(self, delay: float) -> int:
+        return int(np.argmin(np.abs(self.delays - delay)))
+
+    @property
+    def shift(self) -> float:
+        """s, :attr:`delay` less the caller's latest delay (0 before any window)."""
+        return self.delay - self._caller_delay if math.isfinite(self.delay) else 0.0
 
     def _bounded(self, j: np.ndarray) -> np.ndarray:
         if self._prior_j is None:
@@ -217,8 +235,8 @@ class TipJacobianEstimator:
             return z - np.tensordot(q, np.tensordot(q, z, axes=(0, 0)), axes=(1, 0))
 
         y = residual(dx).reshape(-1)
-        fits = []
-        for c in range(self.shifts.size):
+        fits = {}
+        for c in np.flatnonzero(np.abs(self.delays - self._caller_delay) <= self.max_shift + 1e-9):
             d = dphi[:, c, :]                                    # (m, 2) modelled tip increments
             if np.any(np.sum(np.abs(residual(d)), axis=0) < self.min_tip_motion):
                 return                                           # an axis' modelled tip hardly moved: no information
@@ -229,15 +247,19 @@ class TipJacobianEstimator:
                 res = np.abs(y - m @ theta)
                 limit = 3.0 * float(np.median(res)) + 1e-9
                 keep = res <= limit
-            fits.append((float(np.sum(np.minimum(res, limit) ** 2)), m, keep))
-        best = int(np.argmin([f[0] for f in fits]))
-        self._answers.append(float(self.shifts[best]))
-        self.shift = float(np.median(self._answers))
-        _, m, keep = fits[int(np.argmin(np.abs(self.shifts - self.shift)))]
+            fits[int(c)] = (float(np.sum(np.minimum(res, limit) ** 2)), m, keep)
+        best = min(fits, key=lambda c: fits[c][0])
+        self._answers.append(float(self.delays[best]))
+        self.delay = float(np.median(self._answers))
+        _, m, keep = fits[min(fits, key=lambda c: abs(self.delays[c] - self.delay))]
         theta = self._common_depth(m[keep], y[keep])
         if theta is None:
             self.rejected += 1
+            self.explained = 0.0
             return
+        fitted = m[keep] @ theta
+        self.explained = float(np.clip(1.0 - np.sum((y[keep] - fitted) ** 2) / max(float(np.sum(y[keep] ** 2)), 1e-12),
+                                       0.0, 1.0))
         self.theta = theta
         self.updates += 1
 
