@@ -43,14 +43,32 @@ def test_nominal_backlash_prior_matches_the_twins_hysteresis_within_20_percent(p
     assert truth.width.min() > 3 * 2 * max(twin.endoscope.cable_slack, 0) / twin.endoscope.handle_radius
 
 
-NOT_CROSSED = pytest.mark.xfail(strict=True, reason="known gap: the probe's amplitude, sized from the nominal "
-                                 "scope's width (0.24 rad), does not cross this scope's backlash (0.24-0.41 rad) "
-                                 "far enough to move the image; the delay is then not observable")
+WIDTH_CONFOUND = pytest.mark.xfail(strict=True, reason=(
+    "known gap: the delay fit is confounded with the backlash width, not starved by the probe. Its play "
+    "operator assumes the nominal width (0.24 rad), this scope's is 0.39-0.41 rad, and the fit moves the delay "
+    "to make up for it (measured over 10 s: +130 to +230 ms for -105). Handed the true width (oracle) the same "
+    "probe gives -80 ms (test below); a probe that grows on an axis whose image did not move (tried: that "
+    "axis' image then moves 17-38 px) does not help. Needs delay and width fitted jointly."))
+SLOW_AFTER_PROBE = pytest.mark.xfail(strict=True, reason=(
+    "known gap: at 12 cm the probe moves this scope's image only 67 px on x and not at all on y (its y loop is "
+    "0.31 rad wide, the probe's amplitude 0.18 rad); the delay estimate swings (+470 to -50 ms) until the "
+    "tracking after the probe settles it at ~6 s, to 100 ms for 145 (the same with the true width): at 5 s it "
+    "is still -50 ms."))
+
+
+def test_engage_probe_finds_the_delay_on_the_looped_shaft_once_the_width_is_known():
+    """Diagnosis of WIDTH_CONFOUND: with the scope's true reversal width given to the play operator
+    (oracle), the nominal-sized probe makes the delay observable (measured: -80 ms for -105 from 6 s on)."""
+    twin = make_twin("looped-shaft", 0.05, latency=0.25, path="static")
+    truth = sweep_truth(twin)
+    lock = Lock(twin, probe=probe(), loop_gain=0.8, scheduled=False, fixed_width=truth.width)   # oracle width
+    lock.run(8.0)
+    assert lock.delay.delay == pytest.approx(delay_truth(twin, truth.tip_lag), abs=1.0 / twin.camera.fps)
 
 
 @pytest.mark.parametrize("preset,distance,latency", [("calibrated", 0.05, 0.55), ("calibrated", 0.015, 0.3),
-                                                     pytest.param("looped-shaft", 0.05, 0.25, marks=NOT_CROSSED),
-                                                     pytest.param("uncalibrated", 0.12, 0.5, marks=NOT_CROSSED)])
+                                                     pytest.param("looped-shaft", 0.05, 0.25, marks=WIDTH_CONFOUND),
+                                                     pytest.param("uncalibrated", 0.12, 0.5, marks=SLOW_AFTER_PROBE)])
 def test_engage_probe_finds_the_residual_delay_within_one_frame(preset, distance, latency):
     twin = make_twin(preset, distance, latency=latency, path="static")
     truth = delay_truth(twin, sweep_truth(twin).tip_lag)
