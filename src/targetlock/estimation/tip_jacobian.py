@@ -23,13 +23,14 @@ between two frames is
     Δx = Σ_a (A_a·ρ_a + R_a·g_a)·Δφ_a + (the target's own motion),     ρ_a = g_a / Z,
 
 linear in θ = (ρ_x, ρ_y, g_x, g_y). Over a sliding window (``window`` s) the target's own motion is
-removed by projecting both sides onto the complement of a cubic spline in time (knots every ``knot``
-s: a target has mass, its image velocity is smooth on that scale; the tip's stick-slip and reversals
-are not), then θ is fitted by least squares with one robust reweighting (tracker outliers and jumps
-dropped at 3× the median residual). The modelled tip is read at each frame's capture time minus the
-caller's delay minus a small extra shift; the shift (within ``max_shift``, ±60 ms) that fits best is
-chosen per window and the median over recent windows used (a 30 ms misalignment costs ~10 % of J; the play-based
-delay estimate is that far off). A window updates θ only if the modelled tip moved on both axes.
+removed by projecting both sides onto the complement of a cubic spline in time times each increment's
+span (knots every ``knot`` s: a target has mass, its image velocity is smooth on that scale; the tip's
+stick-slip and reversals are not), then θ is fitted by least squares with one robust reweighting
+(tracker outliers and jumps dropped at 3× the median residual). The modelled tip is read at each
+frame's capture time minus the caller's delay minus a small extra shift; the shift (within
+``max_shift``, ±60 ms) that fits best is chosen per window and the median over recent windows used (a
+30 ms misalignment costs ~10 % of J; the play-based delay estimate is that far off). A window updates θ
+only if the modelled tip moved on both axes.
 
 Output: J in px per *handle* rad, ``J_tip · diag(slope)`` with the assumed scope's moving-branch slope
 (tip per handle rad, :meth:`.TipModel.sweep`), at the newest frame's offset and modelled tip
@@ -38,17 +39,18 @@ Output: J in px per *handle* rad, ``J_tip · diag(slope)`` with the assumed scop
 (:func:`.bound_jacobian`: orientation, coupling, singular values within [sv_min, sv_max]); a window
 that gives anything else keeps the last good θ.
 
-Measured on the twin (tests/estimation: closed-loop tracking of a target on an ellipse as large as
-its distance, nominal knowledge, 3 noise seeds; Frobenius error of the whole matrix against the
-twin's, median over 15-30 s): calibrated scope at 5 cm 9-11 %, at 1.5 cm 5 %, at 12 cm 8-10 %, depth
-within 10 % (the play-operator RLS: 38 %, 23-26 %, 43 %); with 1.5 px noise, 10 % drops and 5 %
-outliers at 1.5 cm 7-18 %. It needs the model's hysteresis about right: robust to the handle gain
-(+15 %: 12 %) and tip stiffness (+30 %: 9 %), not to a loop width off by 25 % or more (friction ±30 %,
-cable stiffness −30 %, the uncalibrated scope, the looped shaft: 34-55 %, no better than the RLS).
-:attr:`explained` tells: above 0.9 where J is right, below 0.65 in those cases. A bank of tip models
-with the friction scaled ×0.6-1.7, the best explained one chosen, brought the looped shaft to 20 %,
-the cable stiffness −30 % to 10 % (not built in: five models cost five times the CPU).
-"""
+Measured on the twin (tests/estimation: closed-loop tracking of a target on an ellipse as large as its
+distance, nominal knowledge, 3 noise seeds; Frobenius error of the whole matrix against the twin's,
+median over 15-30 s): calibrated scope at 5 cm 9-11 %, at 1.5 cm 4.5-5 %, at 12 cm 8-10 %, depth within
+10 % (the play-operator RLS: 38 %, 23-26 %, 43 %); with 1.5 px noise, 10 % drops and 5 % outliers at
+1.5 cm 6-13 % (the target's own motion is modelled as a smooth velocity times each increment's span:
+with 20 ms jitter and 10 % drops, a smooth increment instead gave 7-18 %). It needs the model's
+hysteresis about right: robust to the handle gain (+15 %: 12 %) and tip stiffness (+30 %: 9 %), not to
+a loop width off by 25 % or more (friction ±30 %, cable stiffness −30 %, the uncalibrated scope, the
+looped shaft: 34-55 %, no better than the RLS). :attr:`explained` tells: above 0.9 where J is right,
+below 0.65 in those cases. A bank of tip models with the friction scaled ×0.6-1.7, the best explained
+one chosen, brought the looped shaft to 20 %, the cable stiffness −30 % to 10 % (not built in: five
+models cost five times the CPU)."""
 from __future__ import annotations
 
 import math
@@ -234,7 +236,7 @@ class TipJacobianEstimator:
         dphi = np.diff(tips, axis=0)[ok]                         # (m, k, 2)
         a_mid = 0.5 * (a[1:] + a[:-1])[ok]                       # (m, 2, 2)
         r_mid = 0.5 * (r[1:] + r[:-1])[ok]
-        q = self._smooth_basis(mid)
+        q = self._smooth_basis(mid, np.diff(t)[ok])
 
         def residual(z):                                         # z less its projection on the smooth basis
             return z - np.tensordot(q, np.tensordot(q, z, axes=(0, 0)), axes=(1, 0))
@@ -295,11 +297,13 @@ class TipJacobianEstimator:
         gain = np.clip(gain, *self.gain_range)
         return np.concatenate([gain * inv[c], gain])
 
-    def _smooth_basis(self, t: np.ndarray) -> np.ndarray:
-        """Orthonormal basis (m, b) of cubic splines in time with knots every ``knot`` s over ``t``."""
+    def _smooth_basis(self, t: np.ndarray, span: np.ndarray) -> np.ndarray:
+        """Orthonormal basis (m, b) of what the target's own motion can add to increments at midpoints
+        ``t`` (s) spanning ``span`` (s): a smooth image velocity (cubic splines in time, knots every
+        ``knot`` s) times the span — frames come irregularly (jitter, drops)."""
         t0, t1 = float(t[0]), float(t[-1])
         n = max(int(math.ceil((t1 - t0) / self.knot)), 1)
         knots = np.concatenate([[t0] * 3, np.linspace(t0, t1, n + 1), [t1] * 3])
-        b = BSpline.design_matrix(np.clip(t, t0, t1), knots, 3).toarray()
+        b = BSpline.design_matrix(np.clip(t, t0, t1), knots, 3).toarray() * span[:, None]
         q, _ = np.linalg.qr(b)
         return q
