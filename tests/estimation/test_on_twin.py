@@ -9,6 +9,8 @@ the twin's truth measured from the twin itself (oracle, see twin_harness.py):
 Excitation: a lock (an integral controller with the nominal Jacobian, loop gain 0.8/s) tracking a
 target on an ellipse as large as its distance (0.1 Hz, with stops), after the 2 s engage probe
 (ProbeSignal); and the probe alone on a static target (without it a static target gives nothing).
+The Jacobian matrix is judged on the TipJacobianEstimator (``Lock(jacobian="tip")``: a nominal
+TipModel run on the measured handle angles), its size also on the play-operator RLS.
 """
 import math
 
