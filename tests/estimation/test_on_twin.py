@@ -9,6 +9,8 @@ the twin's truth measured from the twin itself (oracle, see twin_harness.py):
 Excitation: a lock (an integral controller with the nominal Jacobian, loop gain 0.8/s) tracking a
 target on an ellipse as large as its distance (0.1 Hz, with stops), after the 2 s engage probe
 (ProbeSignal); and the probe alone on a static target (without it a static target gives nothing).
+The Jacobian matrix is judged on the TipJacobianEstimator (``Lock(jacobian="tip")``: a nominal
+TipModel run on the measured handle angles), its size also on the play-operator RLS.
 """
 import math
 
@@ -43,14 +45,32 @@ def test_nominal_backlash_prior_matches_the_twins_hysteresis_within_20_percent(p
     assert truth.width.min() > 3 * 2 * max(twin.endoscope.cable_slack, 0) / twin.endoscope.handle_radius
 
 
-NOT_CROSSED = pytest.mark.xfail(strict=True, reason="known gap: the probe's amplitude, sized from the nominal "
-                                 "scope's width (0.24 rad), does not cross this scope's backlash (0.24-0.41 rad) "
-                                 "far enough to move the image; the delay is then not observable")
+WIDTH_CONFOUND = pytest.mark.xfail(strict=True, reason=(
+    "known gap: the delay fit is confounded with the backlash width, not starved by the probe. Its play "
+    "operator assumes the nominal width (0.24 rad), this scope's is 0.39-0.41 rad, and the fit moves the delay "
+    "to make up for it (measured over 10 s: +130 to +230 ms for -105). Handed the true width (oracle) the same "
+    "probe gives -80 ms (test below); a probe that grows on an axis whose image did not move (tried: that "
+    "axis' image then moves 17-38 px) does not help. Needs delay and width fitted jointly."))
+SLOW_AFTER_PROBE = pytest.mark.xfail(strict=True, reason=(
+    "known gap: at 12 cm the probe moves this scope's image only 67 px on x and not at all on y (its y loop is "
+    "0.31 rad wide, the probe's amplitude 0.18 rad); the delay estimate swings (+470 to -50 ms) until the "
+    "tracking after the probe settles it at ~6 s, to 100 ms for 145 (the same with the true width): at 5 s it "
+    "is still -50 ms."))
+
+
+def test_engage_probe_finds_the_delay_on_the_looped_shaft_once_the_width_is_known():
+    """Diagnosis of WIDTH_CONFOUND: with the scope's true reversal width given to the play operator
+    (oracle), the nominal-sized probe makes the delay observable (measured: -80 ms for -105 from 6 s on)."""
+    twin = make_twin("looped-shaft", 0.05, latency=0.25, path="static")
+    truth = sweep_truth(twin)
+    lock = Lock(twin, probe=probe(), loop_gain=0.8, scheduled=False, fixed_width=truth.width)   # oracle width
+    lock.run(8.0)
+    assert lock.delay.delay == pytest.approx(delay_truth(twin, truth.tip_lag), abs=1.0 / twin.camera.fps)
 
 
 @pytest.mark.parametrize("preset,distance,latency", [("calibrated", 0.05, 0.55), ("calibrated", 0.015, 0.3),
-                                                     pytest.param("looped-shaft", 0.05, 0.25, marks=NOT_CROSSED),
-                                                     pytest.param("uncalibrated", 0.12, 0.5, marks=NOT_CROSSED)])
+                                                     pytest.param("looped-shaft", 0.05, 0.25, marks=WIDTH_CONFOUND),
+                                                     pytest.param("uncalibrated", 0.12, 0.5, marks=SLOW_AFTER_PROBE)])
 def test_engage_probe_finds_the_residual_delay_within_one_frame(preset, distance, latency):
     twin = make_twin(preset, distance, latency=latency, path="static")
     truth = delay_truth(twin, sweep_truth(twin).tip_lag)
@@ -68,10 +88,10 @@ TRACKING = [("calibrated", 0.05, 0.5, 0.0), ("calibrated", 0.015, 0.3, 0.02), ("
             ("looped-shaft", 0.05, 0.3, 0.0)]
 
 
-def track(preset, distance, latency, jitter, noise=None, truth=None):
+def track(preset, distance, latency, jitter, noise=None, truth=None, jacobian="rls"):
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
     lock = Lock(twin, noise=noise or ObservationNoise(noise_px=0.2), probe=probe(), loop_gain=0.8, scheduled=False,
-                truth=truth)
+                truth=truth, jacobian=jacobian)
     return twin, lock, lock.run(30.0)
 
 
@@ -114,16 +134,18 @@ def test_tracking_jacobian_size_within_20_percent(preset, distance, latency, jit
     assert np.median(size[t > 10.0]) == pytest.approx(1.0, abs=0.2)
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: in closed-loop tracking the RLS Jacobian matrix comes out "
-                                       "20-45 % off (cross terms and the axes' balance; its size is better, above): "
-                                       "J shows only where the motor's speed changes, at reversals, where the play "
-                                       "model is coarsest, and the motor follows the target")
-@pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:2])
+@pytest.mark.parametrize("preset,distance,latency,jitter", TRACKING[:3])
 def test_tracking_jacobian_within_15_percent(preset, distance, latency, jitter):
+    """The whole matrix (Frobenius, cross terms included), median over 15-30 s, by the
+    TipJacobianEstimator on the nominal tip model; and the depth it implies. Measured over 3 noise
+    seeds: 5 cm 9-11 %, 1.5 cm 5 %, 12 cm 8-10 %; depth 4.9-5.5, 1.5, 9.5-11 cm (the play-operator
+    RLS: 38 %, 23-26 %, 43 %, mostly because J depends on where the target is in the image, 100-200 px
+    off centre here, which one constant J cannot follow)."""
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
-    twin, lock, trace = track(preset, distance, latency, jitter, truth=sweep_truth(twin))
+    twin, lock, trace = track(preset, distance, latency, jitter, truth=sweep_truth(twin), jacobian="tip")
     err = [np.linalg.norm(j - jt) / np.linalg.norm(jt) for j, jt in zip(trace.j, trace.j_true)]
     assert np.median(err[len(err) // 2:]) < 0.15
+    assert lock.tip_jac.depth == pytest.approx(distance, rel=0.35)
 
 
 @pytest.mark.parametrize("distance", [0.015, 0.10])
@@ -177,6 +199,21 @@ def test_estimates_stay_bounded_and_converge_under_noise_drops_and_outliers():
     assert lock.delay.delay == pytest.approx(delay_truth(twin, truth.tip_lag), abs=1.0 / twin.camera.fps)
     widths = np.array([lock.backlash.axis_width(a, 0.3) for a in range(2)])
     np.testing.assert_allclose(widths, truth.width, rtol=0.25)
+
+
+def test_tip_jacobian_stays_bounded_and_converges_under_noise_drops_and_outliers():
+    """The same conditions for the TipJacobianEstimator: its J within the bounds at every frame, finite,
+    and its whole matrix within 20 % of the truth (median over 15-30 s; measured on seeds 3, 4, 5: 9 %,
+    6 %, 13 %; noise-free 5 %); the depth within 35 % (measured 1.3, 1.5, 2.2 cm for 1.5)."""
+    noise = ObservationNoise(noise_px=1.5, drop_probability=0.1, outlier_probability=0.05, seed=3)
+    twin = make_twin("calibrated", 0.015, latency=0.3, jitter=0.02, size=1.0)
+    twin, lock, trace = track("calibrated", 0.015, 0.3, 0.02, noise=noise, truth=sweep_truth(twin), jacobian="tip")
+    for j in trace.j:
+        s = np.linalg.svd(j, compute_uv=False)
+        assert np.all(np.isfinite(j)) and lock.jac.sv_min - 1e-6 <= s.min() and s.max() <= lock.jac.sv_max + 1e-6
+    err = [np.linalg.norm(j - jt) / np.linalg.norm(jt) for j, jt in zip(trace.j, trace.j_true)]
+    assert np.median(err[len(err) // 2:]) < 0.2
+    assert lock.tip_jac.depth == pytest.approx(0.015, rel=0.35)
 
 
 def test_probe_is_bounded_zero_mean_and_ends_at_zero():

@@ -10,6 +10,8 @@ import numpy as np
 from targetlock.controllers.pi import History
 from targetlock.estimation import BacklashFitEstimator, DelayFitEstimator, JacobianEstimator, prior_jacobian
 from targetlock.estimation.probe import nominal_width
+from targetlock.estimation.tip_jacobian import TipJacobianEstimator
+from targetlock.estimation.tip_model import TipModel, hysteresis_loop, triangle
 from targetlock.model.endoscope import EndoscopeParams
 from targetlock.model.camera import CameraParams, project, world_to_camera
 from targetlock.model.kinematics import tip_pose
@@ -20,6 +22,8 @@ NOMINAL_TIP_GAIN = 90.0 / 110.0       # the controller's assumed handle -> tip g
 STAMP_LATENCY = 0.4                   # s, the latency the rig is told (nominal knowledge)
 CONTROL_DT = 0.02                     # s, the loop's 50 Hz
 NOMINAL_WIDTH = nominal_width(EndoscopeParams())   # rad, the backlash the nominal scope has (knowledge)
+_E = EndoscopeParams()
+NOMINAL_TIP_LAG = _E.mu_f / (_E.cable_arm ** 2 * _E.cable_stiffness + _E.tip_stiffness)   # s, the nominal tip's lag
 
 
 def make_twin(preset: str, distance: float, *, latency: float, jitter: float = 0.0, path: str = "ellipse",
@@ -60,18 +64,14 @@ class SweepTruth:
 
 def sweep_truth(twin: TwinConfig, amplitude: float = 0.6, rate: float = 0.2) -> SweepTruth:
     """Drive each handle axis alone in a slow triangle (``rate`` rad/s, ±``amplitude`` rad about the
-    start) and read the twin's tip angles (oracle). On the second cycle, over the middle 60 % of the tip
-    range (where the tip moves on both branches): the slope is the fit of tip on handle of each branch
-    (averaged), the width the mean handle distance between the rising and the falling branch at equal
-    tip angle — the handle travel lost at a reversal."""
+    start, two cycles) and read the twin's tip angles (oracle); slope and width of the loop by
+    :func:`hysteresis_loop` (the handle travel lost at a reversal, over the middle of the tip range)."""
     slope, width = np.zeros(2), np.zeros(2)
+    t, tri = triangle(amplitude, rate)
     for a in range(2):
         rig = SimulatedRig(twin)
         rig.drives.home()
         start = rig.handle_angles()
-        period = 4 * amplitude / rate
-        t = np.arange(0.0, 2 * period, 0.01)
-        tri = amplitude * (2 / math.pi) * np.arcsin(np.sin(2 * math.pi * t / period))
         h, tip = np.empty(t.size), np.empty(t.size)
         for k, tk in enumerate(t):
             sp = start.copy()
@@ -79,16 +79,7 @@ def sweep_truth(twin: TwinConfig, amplitude: float = 0.6, rate: float = 0.2) -> 
             rig.drives.send_setpoints(np.rint(sp / rig.drives.rad_per_tick))
             rig.advance(tk)
             h[k], tip[k] = rig.handle_angles()[a], rig.tip_angles()[a]
-        second = t >= period                         # the first cycle reaches the loop from the start
-        lo, hi = np.quantile(tip[second], [0.2, 0.8])
-        dh = np.gradient(h)
-        mid = second & (tip > lo) & (tip < hi)
-        up, down = mid & (dh > 0), mid & (dh < 0)
-        s_up, c_up = np.polyfit(h[up], tip[up], 1)
-        s_dn, c_dn = np.polyfit(h[down], tip[down], 1)
-        slope[a] = 0.5 * (s_up + s_dn)
-        levels = np.linspace(lo, hi, 20)
-        width[a] = float(np.mean((levels - c_up) / s_up - (levels - c_dn) / s_dn))
+        slope[a], width[a] = hysteresis_loop(t, h, tip)
     k = twin.endoscope.cable_arm ** 2 * twin.endoscope.cable_stiffness
     return SweepTruth(slope=slope, width=width, tip_lag=twin.endoscope.mu_f / (k + twin.endoscope.tip_stiffness))
 
@@ -107,12 +98,16 @@ class Trace:
 class Lock:
     """Integral lock scheduled by the estimated J (loop gain ``loop_gain`` 1/s), feeding the estimators
     as ``controllers/adaptive.py`` does: motor at capture time minus the estimated delay from a history,
-    a play operator of the estimated width, increments between frames (spanning frames when slow)."""
+    a play operator of the estimated width, increments between frames (spanning frames when slow).
+
+    ``jacobian="tip"``: the traced J is instead the :class:`TipJacobianEstimator`'s, fed with a
+    :class:`TipModel` of the nominal scope run on the measured handle angles (its delay: the delay
+    estimate less the nominal tip lag, which the model has); the RLS still runs for the other estimators."""
 
     def __init__(self, twin: TwinConfig, *, noise: ObservationNoise | None = None, loop_gain: float = 1.2,
                  probe=None, truth: SweepTruth | None = None, fixed_width: float | None = None,
                  fixed_delay: float | None = None, scheduled: bool = True, jac_kw: dict | None = None,
-                 min_span: float = 0.0) -> None:
+                 min_span: float = 0.0, jacobian: str = "rls", tip_endoscope: EndoscopeParams | None = None) -> None:
         self.fixed_width, self.fixed_delay, self.scheduled = fixed_width, fixed_delay, scheduled
         self.probe_start = 0.0
         self.min_span = min_span
@@ -125,6 +120,15 @@ class Lock:
         self.jac = JacobianEstimator(prior, sv_min=0.75 * np.linalg.svd(far, compute_uv=False).min(),
                                      sv_max=1.5 * np.linalg.svd(near, compute_uv=False).max(), **(jac_kw or {}))
         self.delay = DelayFitEstimator(initial=0.0)
+        self.tip_model = self.tip_jac = None
+        if jacobian == "tip":
+            self.tip_model = TipModel(tip_endoscope or EndoscopeParams())      # nominal knowledge by default
+            self.tip_model.reset(0.0, m)
+            self.tip_jac = TipJacobianEstimator(camera=CameraParams(), tip_length=0.12, n_elements=30,
+                                                slope=self.tip_model.sweep(m)[0], depth=0.12,
+                                                sv_min=self.jac.sv_min, sv_max=self.jac.sv_max)
+        elif jacobian != "rls":
+            raise ValueError(f"Lock: jacobian = {jacobian!r}; allowed: 'rls', 'tip'")
         self.backlash = BacklashFitEstimator()
         self.history = History(3.0, CONTROL_DT)
         self.tip_history = History(3.0, CONTROL_DT)     # oracle: the twin's tip angles, for tests only
@@ -154,6 +158,8 @@ class Lock:
             motor = rig.handle_angles()
             self.history.push(now, motor)
             self.tip_history.push(now, rig.tip_angles())
+            if self.tip_model is not None:
+                self.tip_model.update(now, motor)
             half = 0.5 * self.width(motor)
             self.effective = np.clip(self.effective, motor - half, motor + half)
             self.eff_history.push(now, self.effective)
@@ -183,13 +189,15 @@ class Lock:
             self.prev = (c, x)
         self.delay.add(c, x, self.eff_history.at_many, self.jac.j)
         self.backlash.add(m_c, x, self.jac.j)
+        if self.tip_jac is not None:
+            self.tip_jac.add(c, x, self.tip_model.tips_at, d - NOMINAL_TIP_LAG)
         dt = 0.0 if self.last_c is None else min(max(c - self.last_c, 0.0), 0.2)
         self.last_c = c
         # integral action with the estimated J: u += k · J⁻¹ x, loop gain k (1/s)
         self.command = self.command - self.loop_gain * dt * np.linalg.solve(self.jac.j if self.scheduled else self.prior, x)
         tr = self.trace
         tr.t.append(c)
-        tr.j.append(self.jac.j.copy())
+        tr.j.append((self.jac if self.tip_jac is None else self.tip_jac).j.copy())
         tr.delay.append(self.delay.delay)
         tr.width.append(self.backlash.width(float(np.abs(m_c).sum())))
         tr.reversals.append(self.backlash.reversals)

@@ -7,6 +7,8 @@ output stays within stated physical limits whatever the input (noise, dropped fr
 
 * :class:`JacobianEstimator` — image Jacobian, px of target motion per handle rad, 2×2 (cross
   coupling included; it carries the working distance, the camera and the handle gain);
+  :class:`TipJacobianEstimator` the same relative to a :class:`TipModel`'s tip, position-dependent
+  through the camera model (translation and rotation parts, one target depth), by windowed least squares;
 * :class:`DelayEstimator` — the delay between the motor motion and the image motion it causes,
   relative to the frames' capture time stamps (a wrongly stamped or unknown video latency);
   :class:`DelayFitEstimator` the same by an output-error fit that a closed loop does not bias;
@@ -15,7 +17,9 @@ output stays within stated physical limits whatever the input (noise, dropped fr
   axis by fitting a play operator (robust to the target's own motion); :func:`nominal_width` its prior;
 * :class:`DepthEstimator` — the target depth, from the Jacobian's size and (where observable) the
   tracker's scale;
-* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging.
+* :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging;
+* :class:`TipModel` — the assumed (nominal) endoscope run online on the measured handle angles:
+  modelled tip angles with hysteresis and stick-slip, and their recent history.
 """
 from __future__ import annotations
 
@@ -24,7 +28,10 @@ from .delay import DelayEstimator, DelayFitEstimator
 from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
 from .probe import ProbeSignal, nominal_width
+from .tip_jacobian import TipJacobianEstimator, image_jacobian_parts
+from .tip_model import TipModel
 
 __all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
            "BacklashFitEstimator", "DepthEstimator",
-           "ProbeSignal", "nominal_width"]
+           "ProbeSignal", "nominal_width", "TipModel", "TipJacobianEstimator",
+           "image_jacobian_parts"]

@@ -26,7 +26,7 @@ import numpy as np
 from ..model.camera import CameraParams, project, unproject
 from ..model.kinematics import tip_pose
 
-__all__ = ["JacobianEstimator", "prior_jacobian"]
+__all__ = ["JacobianEstimator", "prior_jacobian", "bound_jacobian"]
 
 
 def prior_jacobian(motor: np.ndarray, *, camera: CameraParams, depth: float, tip_gain: float, tip_length: float,
@@ -44,6 +44,29 @@ def prior_jacobian(motor: np.ndarray, *, camera: CameraParams, depth: float, tip
         pc = pose_d[:3, :3].T @ (p_world - pose_d[:3, 3])
         j[:, a] = (project(pc, camera, distort=False) - (camera.cx, camera.cy)) / eps
     return j
+
+
+def bound_jacobian(j: np.ndarray, prior: np.ndarray, *, sv_min: float, sv_max: float,
+                   max_coupling: float) -> np.ndarray | None:
+    """``j`` (px/rad, 2×2) made physically possible, or None if it cannot be: each handle axis moves
+    the image mostly along the axis the ``prior`` says (same sign of the direct term, the cross term at
+    most ``max_coupling`` of it: the bending planes are the image axes, up to a moderate coupling when
+    both axes are bent), singular values within [``sv_min``, ``sv_max``], not mirrored against the prior."""
+    j = np.array(j, dtype=float)
+    if not np.all(np.isfinite(j)):
+        return None
+    diag_p = np.diag(prior)
+    for a in range(2):
+        if np.sign(j[a, a]) != np.sign(diag_p[a]):
+            return None
+        b = 1 - a
+        j[b, a] = np.clip(j[b, a], -max_coupling * abs(j[a, a]), max_coupling * abs(j[a, a]))
+    u, s, vt = np.linalg.svd(j)
+    out = (u * np.clip(s, sv_min, sv_max)) @ vt
+    det_p = np.linalg.det(prior)
+    if math.copysign(1.0, np.linalg.det(out)) != (math.copysign(1.0, det_p) if det_p != 0 else 1.0):
+        return None                              # mirrored image: impossible
+    return out
 
 
 class JacobianEstimator:
@@ -123,20 +146,8 @@ class JacobianEstimator:
         size = float(np.linalg.norm(self.j))
         if np.linalg.norm(step) > self.max_change * size:
             j = self.j + step * (self.max_change * size / np.linalg.norm(step))
-        # Structure: each handle axis moves the image mostly along the axis the prior says (the
-        # bending planes are the image axes, up to a moderate coupling when both axes are bent).
-        diag_p = np.diag(self.prior)
-        for a in range(2):
-            if np.sign(j[a, a]) != np.sign(diag_p[a]):
-                return self.j
-            b = 1 - a
-            j[b, a] = np.clip(j[b, a], -self.max_coupling * abs(j[a, a]), self.max_coupling * abs(j[a, a]))
-        u, s, vt = np.linalg.svd(j)
-        s = np.clip(s, self.sv_min, self.sv_max)
-        out = (u * s) @ vt
-        if math.copysign(1.0, np.linalg.det(out)) != self.orientation:
-            return self.j                        # mirrored image: impossible, keep the last good one
-        return out
+        out = bound_jacobian(j, self.prior, sv_min=self.sv_min, sv_max=self.sv_max, max_coupling=self.max_coupling)
+        return self.j if out is None else out
 
     @property
     def gain_scale(self) -> float:
