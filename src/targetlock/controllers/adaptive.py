@@ -45,17 +45,12 @@ import math
 
 import numpy as np
 
-from ..estimation import DelayEstimator, JacobianEstimator, prior_jacobian
-from ..model.drives import DriveParams
-from ..model.endoscope import advance, initial_state, pack_params
+from ..estimation import DelayEstimator, JacobianEstimator, TipModel, prior_jacobian
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
-from .pi import History
 
 __all__ = ["AdaptiveController"]
-
-MODEL_DT = 0.001                         # s, step of the online endoscope model
 
 
 class AdaptiveController(Controller):
@@ -93,29 +88,25 @@ class AdaptiveController(Controller):
         self.prev: tuple[float, np.ndarray] | None = None
         # Online nominal endoscope (the twin's kernel with the assumed parameters) fed the measured
         # motor: the tip motion the motor makes, with friction hysteresis and the cables' slack.
-        self.model_params = pack_params(k.endoscope, DriveParams(time_constant=0.0, max_velocity_ticks=1e9,
-                                                                 min_angle=-6.3, max_angle=6.3))
-        self.model_state = initial_state(1)
-        for f in np.linspace(0.0, 1.0, 50)[1:]:          # it got here bending outwards from straight
-            advance(self.model_state, self.model_params, (f * motor)[None, :], MODEL_DT, 40)
-        advance(self.model_state, self.model_params, motor[None, :], MODEL_DT, 1000)
-        self.effective = self.model_state[0, 2:4] / cfg.tip_gain
-        self.effective_history = History(k.latency + 2.0, self.control_dt)
-        self.effective_history.push(t, self.effective)
+        self.tip_model = TipModel(k.endoscope, horizon=k.latency + 2.0)
+        self.tip_model.reset(t, motor)
+        self.effective = self._effective_at(np.array([t]))[0]
+
+    def _effective_at(self, times: np.ndarray) -> np.ndarray:
+        """The modelled tip (equivalent handle rad: tip angle over the assumed tip gain) at the times (s)."""
+        return self.tip_model.tips_at(times) / self.cfg.tip_gain
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray | None:
-        advance(self.model_state, self.model_params, motor[None, :], MODEL_DT, max(1, round(self.control_dt / MODEL_DT)))
-        self.effective = self.model_state[0, 2:4] / self.cfg.tip_gain
-        self.effective_history.push(t, self.effective)
+        self.effective = self.tip_model.update(t, motor) / self.cfg.tip_gain
         if obs is None:
             return None
         cfg = self.cfg
         x = np.asarray(obs.offset, dtype=float)
         c = float(obs.capture_time)
-        e_c = self.effective_history.at(c - self.delay.delay)
         est = self.jacobian
         tp, xp = self.prev if self.prev is not None else (c, x)
-        dm = e_c - self.effective_history.at(tp - self.delay.delay)
+        e_c, e_p = self._effective_at(np.array([c, tp]) - self.delay.delay)
+        dm = e_c - e_p
         # Slow motion (tracking a drifting target) moves the motor too little between two frames to
         # say anything about J: the pair then spans several frames, up to ``pair_span`` s.
         if self.prev is None or np.linalg.norm(dm) >= est.min_motion or c - tp >= self.pair_span:
@@ -129,7 +120,7 @@ class AdaptiveController(Controller):
                 elif est.rejected > rejected:
                     self.mismatch = 0.8 * self.mismatch + 0.2 * 3.0    # an outlier: distrust a while
             self.prev = (c, x)
-        self.delay.add(c, x, self.effective_history.at_many, est.j)
+        self.delay.add(c, x, self._effective_at, est.j)
         # Trust in the model: 1 while its predictions match (mismatch <= 0.3), 0 beyond 0.8.
         self.trust = float(np.clip((0.8 - self.mismatch) / 0.5, 0.0, 1.0)) if est.updates >= 5 else 0.0
         return self._servo(x, motor, e_c, t)
