@@ -113,3 +113,22 @@ def test_a_deliberately_wrong_model_is_not_worse_than_pi(knowledge):
     ad = run_target_lock(step_config(0.04, "adaptive", knowledge))
     assert ad["out_of_view_fraction"] == 0.0
     assert ad["rms_px"] <= 1.1 * pi["rms_px"]
+
+
+def test_an_axis_not_yet_learned_takes_the_distance_the_other_axis_found():
+    """Both axes look at the same target: y learned at twice the prior's J (the target is nearer than
+    assumed) while x has not moved -> x's column is the prior's, doubled; a far target (J below the
+    prior) never shrinks the unlearned axis (that would make its steps larger)."""
+    c = make()
+    c.reset(np.zeros(2), 0.0)
+    prior = c.prior.copy()
+    learned = prior.copy()
+    learned[:, 1] *= 2.0
+    c.axis_motion = np.array([0.0, 0.5])
+    np.testing.assert_allclose(c._filled(learned)[:, 0], 2.0 * prior[:, 0])
+    np.testing.assert_allclose(c._filled(learned)[:, 1], learned[:, 1])
+    far = prior.copy()
+    far[:, 1] *= 0.5
+    np.testing.assert_allclose(c._filled(far), far)
+    c.axis_motion = np.array([0.5, 0.5])            # both learned: the estimate as it is
+    np.testing.assert_allclose(c._filled(learned), learned)
