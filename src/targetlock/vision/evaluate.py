@@ -186,7 +186,7 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
     if name not in SEQUENCES:
         raise ValueError(f"sequence {name!r}; allowed: {', '.join(SEQUENCES)}")
     cam = cam or endoscope_camera()
-    rs = render_settings or RenderSettings()
+    rs = render_settings or RenderSettings(fresh_noise=True)
     if name == "noise":
         rs = replace(rs, noise_sigma=max(rs.noise_sigma, 8.0))
     exposure = cfg.exposure_s * (2.0 if name == "blur" else 1.0)
@@ -285,7 +285,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     """
     cfg = validate(settings or EvalSettings())
     cam = cam or endoscope_camera()
-    rs = render_settings or RenderSettings()
+    rs = render_settings or RenderSettings(fresh_noise=True)
     if cfg.tracker == "marker":
         contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
     else:

@@ -267,6 +267,9 @@ class TrackerSettings:
     keyframe_scale: float = param(0.3, lo=0.01, hi=2.0, doc="scale range of a keyframe (relative); a new one is made at half of it")
     keyframe_rotation_deg: float = param(40.0, unit="deg", lo=0.5, hi=90.0,
                                          doc="rotation range of a keyframe; a new one is made at half of it")
+    keyframe_min_confidence: float = param(0.3, lo=0.0, hi=1.0,
+                                           doc="least match confidence (share and number of inliers) of a frame a new "
+                                               "keyframe is made from")
     highlight_margin_px: int = param(3, unit="px", lo=0, hi=50,
                                      doc="highlights are grown by this margin before masking and filling")
     saturation_level: int = param(190, lo=1, hi=255,
@@ -287,6 +290,11 @@ class TrackerSettings:
                                           "patch counts as covered")
     dense_min_ecc: float = param(0.6, lo=0.0, hi=1.0,
                                  doc="least ECC correlation of the dense keyframe match (weak texture) that agrees with the chain")
+    dense_min_ncc: float = param(0.35, lo=0.0, hi=1.0,
+                                 doc="least correlation of the dense keyframe match (weak texture; band-passed) that "
+                                     "agrees with the chain (band-passed, glints' halo left out; tried when ECC fails)")
+    dense_radius_px: float = param(8.0, unit="px", lo=1.0, hi=100.0,
+                                   doc="the dense keyframe match searches this far around the prediction")
     patch_blur_ncc: float = param(0.3, lo=-1.0, hi=1.0,
                                   doc="a target patch with less texture energy, evenly spread, that still correlates "
                                       "this much is the same tissue blurred (weak texture under motion blur), not covered")
@@ -301,7 +309,7 @@ class TrackerSettings:
                                             "target window (weak texture, where ORB finds no keypoints)")
     dense_reacquire_ncc: float = param(0.35, lo=0.0, hi=1.0,
                                        doc="least normalised correlation of a dense re-acquisition candidate")
-    dense_reacquire_lead: float = param(1.5, lo=1.0, hi=100.0,
+    dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
                                         doc="least ratio of the candidate's correlation to the best other place's")
     dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
                                     doc="a dense candidate is accepted when the next frame finds it again where the "
@@ -321,6 +329,7 @@ class _View:
     to_frame: np.ndarray
     sat: np.ndarray
     raw: np.ndarray
+    fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
 
     def local(self) -> np.ndarray:
@@ -344,7 +353,7 @@ class _Keyframe:
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
-    detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
+    detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
 
 
@@ -356,13 +365,13 @@ class FeatureTracker(Tracker):
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
-        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                    patchSize=31, fastThreshold=10)
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                        patchSize=31, fastThreshold=10)
         self._clahe: dict = {}
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
         self._fov: np.ndarray | None = None
@@ -451,7 +460,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw)
+        return _View(norm, to_frame, sat, raw, fov)
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -795,13 +804,13 @@ class FeatureTracker(Tracker):
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
         return self._motion(ksrc, kdst, kf.target), ksrc, kdst, wv
 
-    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+    def _match_ecc(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
         """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
-        blur, noise, an exposure step): the keyframe's target window (highlights left out) is
-        aligned with this frame's region ``wv`` (already warped by the prediction ``key_to_pred``)
-        by ECC, a correlation that is invariant to gain and offset. Returns (keyframe frame ->
-        this frame, 3x3; the correlation) or None when it does not converge or correlates less
-        than ``dense_min_ecc``."""
+        blur, noise, an exposure step): the keyframe's high-passed target window (this frame's
+        highlights left out) is aligned with this frame's region ``wv`` (already warped by the
+        prediction ``key_to_pred``) by ECC, a correlation that is invariant to gain and offset.
+        Returns (keyframe frame -> this frame, 3x3; the correlation) or None when it does not
+        converge or correlates less than ``dense_min_ecc``; then :meth:`_match_dense` tries."""
         s = self.settings
         half = int(0.5 * self._window)
         t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
@@ -826,6 +835,37 @@ class FeatureTracker(Tracker):
         if not rho >= s.dense_min_ecc or np.hypot(*d) > s.search_margin_px:
             return None
         return key_to_pred @ _translation(d), float(rho)
+
+    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+        """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
+        blur, noise, an exposure step): the keyframe's band-passed target window is correlated
+        (normalised, so invariant to gain and offset) with this frame's region ``wv`` (already
+        warped by the prediction ``key_to_pred``) within ``dense_radius_px``; highlights and their
+        halo are left out of both. Returns (keyframe frame -> this frame, 3x3; the correlation) or
+        None when the best place correlates less than ``dense_min_ncc``."""
+        s = self.settings
+        bp, valid = self._kf_band(kf)
+        half = int(0.5 * self._window)
+        r = int(math.ceil(s.dense_radius_px))
+        t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
+        h, w = bp.shape
+        x0, y0 = max(r, t[0] - half), max(r, t[1] - half)
+        x1, y1 = min(w - r, t[0] + half + 1), min(h - r, t[1] + half + 1)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        ok = valid[y0:y1, x0:x1] > 0
+        if np.count_nonzero(ok) < 0.3 * ok.size:
+            return None
+        tpl = np.where(ok, bp[y0:y1, x0:x1], np.float32(0.0))
+        img = _band(wv.gray[y0 - r:y1 + r, x0 - r:x1 + r], *self._BAND_FULL)
+        near = self._band_valid(wv.fov[y0 - r:y1 + r, x0 - r:x1 + r], wv.sat[y0 - r:y1 + r, x0 - r:x1 + r], 1.0)
+        img[near == 0] = 0.0
+        score = cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)
+        _, top, _, loc = cv2.minMaxLoc(score)
+        if not top >= s.dense_min_ncc:
+            return None
+        d = _subpixel(score, loc) - r  # shift in the keyframe's (and the warped region's) pixels
+        return key_to_pred @ _translation(d), float(top)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
@@ -917,7 +957,12 @@ class FeatureTracker(Tracker):
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
         if key is None and current is not None and chain is not None and not relock:
-            dense = self._match_dense(self._key, *current)  # checked against the chain below
+            # ECC first; the band-passed correlation when ECC fails or disagrees with the chain
+            # (it leaves the glints' halo out, which on weak texture can outweigh the tissue)
+            for match in (self._match_ecc, self._match_dense):
+                dense = match(self._key, *current)
+                if dense is not None and np.hypot(*(_apply(dense[0], self._key.target) - est_chain)) <= s.consistency_px:
+                    break
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
@@ -977,6 +1022,7 @@ class FeatureTracker(Tracker):
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
+        match_conf = conf  # the evidence of the match itself
         conf *= min(1.0, ncc / s.patch_keyframe_ncc)
         # One-sided support (inliers only on one side: the rest covered or out of view) is an
         # extrapolation: less confident.
@@ -1010,8 +1056,10 @@ class FeatureTracker(Tracker):
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
         # extrapolation, which drifts at the edge of the view), its own patch unchanged.
+        # A weak match (few of the keyframe's features) would hand its error on to the next
+        # keyframe: renewing from such frames one after another drifts off the target.
         supported = (surrounded and self._in_view(est, inner=True)
-                     and ncc >= s.patch_keyframe_ncc)
+                     and ncc >= s.patch_keyframe_ncc and match_conf >= s.keyframe_min_confidence)
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
@@ -1083,18 +1131,18 @@ class FeatureTracker(Tracker):
         near = cv2.dilate(sat.view(np.uint8), np.ones((k, k), np.uint8))
         return cv2.bitwise_and(cv2.erode(fov, np.ones((k, k), np.uint8)), cv2.bitwise_not(near * 255))
 
+    def _kf_band(self, kf: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        """Band-passed gray of keyframe ``kf``'s region and its usable mask (:meth:`_band_valid`)."""
+        if kf.band is None:
+            kf.band = _band(kf.view.gray, *self._BAND_FULL), self._band_valid(kf.view.fov, kf.view.sat, 1.0)
+        return kf.band
+
     def _dense_template(self, kf: _Keyframe, scale: float) -> tuple[np.ndarray, float] | None:
         """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or 0.5)
         to the scale and rotation of the last accepted view; highlights and what lies outside the
         field of view are zero (neutral for the correlation). Returns (template, its texture energy
         per valid pixel) or None when too little of it is usable."""
-        if kf.band is None:
-            bp = _band(kf.view.gray, *self._BAND_FULL)
-            off = kf.view.to_frame[:2, 2].astype(int)
-            h, w = bp.shape
-            valid = self._band_valid(self._fov[off[1]:off[1] + h, off[0]:off[0] + w], kf.view.sat, 1.0)
-            kf.band = bp, valid
-        bp, valid = kf.band
+        bp, valid = self._kf_band(kf)
         rel = self._from_anchor @ _inv(kf.from_anchor)   # keyframe -> last accepted frame
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
         half = int(round(0.5 * self._window * scale))
