@@ -957,12 +957,12 @@ class FeatureTracker(Tracker):
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
         if key is None and current is not None and chain is not None and not relock:
-            # ECC first; the band-passed correlation when ECC fails or disagrees with the chain
-            # (it leaves the glints' halo out, which on weak texture can outweigh the tissue)
-            for match in (self._match_ecc, self._match_dense):
-                dense = match(self._key, *current)
-                if dense is not None and np.hypot(*(_apply(dense[0], self._key.target) - est_chain)) <= s.consistency_px:
-                    break
+            # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
+            # halo out, which on weak texture can outweigh the tissue). An ECC match that
+            # disagrees with the chain is a warning kept: the frame is rejected below.
+            dense = self._match_ecc(self._key, *current)
+            if dense is None:
+                dense = self._match_dense(self._key, *current)
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
