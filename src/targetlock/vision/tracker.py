@@ -268,8 +268,10 @@ class TrackerSettings:
     keyframe_rotation_deg: float = param(40.0, unit="deg", lo=0.5, hi=90.0,
                                          doc="rotation range of a keyframe; a new one is made at half of it")
     keyframe_min_confidence: float = param(0.3, lo=0.0, hi=1.0,
-                                           doc="least match confidence (share and number of inliers) of a frame a new "
-                                               "keyframe is made from")
+                                           doc="a frame whose match confidence (share and number of inliers) is lower "
+                                               "is a weak match for making keyframes")
+    weak_keyframes: int = param(0, lo=0, hi=1000,
+                                doc="most keyframes made in a row from weak matches (each hands its error on)")
     highlight_margin_px: int = param(3, unit="px", lo=0, hi=50,
                                      doc="highlights are grown by this margin before masking and filling")
     saturation_level: int = param(190, lo=1, hi=255,
@@ -677,6 +679,7 @@ class FeatureTracker(Tracker):
         self._vel_known = False
         self._misses = 0
         self._recent: deque[_Keyframe] = deque(maxlen=s.keyframes)
+        self._weak_keys = 0  # keyframes made in a row from weak matches
         self._side = int(min(frame_bgr.shape[0], frame_bgr.shape[1],
                              math.ceil(1.3 * self._window + 2 * (s.search_margin_px + s.lk_window_px // 2 + 1))))
         self._hann = None
@@ -1056,10 +1059,13 @@ class FeatureTracker(Tracker):
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
         # extrapolation, which drifts at the edge of the view), its own patch unchanged.
-        # A weak match (few of the keyframe's features) would hand its error on to the next
-        # keyframe: renewing from such frames one after another drifts off the target.
+        # A weak match (few of the keyframe's features) hands its error on to the next keyframe:
+        # renewing from such frames one after another drifts off the target, so at most
+        # ``weak_keyframes`` in a row (default none: more keep weak texture tracked longer, but
+        # drifted into false locks on unseen sequences).
+        weak = match_conf < s.keyframe_min_confidence
         supported = (surrounded and self._in_view(est, inner=True)
-                     and ncc >= s.patch_keyframe_ncc and match_conf >= s.keyframe_min_confidence)
+                     and ncc >= s.patch_keyframe_ncc and (not weak or self._weak_keys < s.weak_keyframes))
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
@@ -1067,6 +1073,7 @@ class FeatureTracker(Tracker):
             if kf_new is not None:
                 self._recent.append(kf_new)
                 self._key = kf_new
+                self._weak_keys = self._weak_keys + 1 if weak else 0
         if relock:
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
