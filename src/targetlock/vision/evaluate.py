@@ -19,6 +19,10 @@ remaining frames. Default sequences (:data:`SEQUENCES`):
 ``folds``     not a plane: a lumen with ring folds that breathes and carries a peristaltic wave
               (``model.scene.SurfaceParams``), target on its wall, the tip moving sideways (parallax)
 
+Sensor noise is drawn fresh for every frame (``RenderSettings(fresh_noise=True)`` unless render
+settings are given): the loop renderer's noise bank repeats its pattern, shifted, between frames,
+which on weak texture under strong noise is a motion a tracker can follow.
+
 Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
 
 * **error**: distance (px) of a *valid* estimate from the true position of the selected point.
