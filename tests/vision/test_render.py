@@ -109,6 +109,21 @@ def test_noise_is_seeded(cam, mucosa_target):
     assert 1.5 < noise.std() < 5.0                       # ~ sqrt(2) * sigma (2 levels)
 
 
+@pytest.mark.parametrize("fresh", [False, True])
+def test_fresh_noise_is_not_a_shifted_copy_of_earlier_noise(cam, mucosa_target, fresh):
+    """The bank's noise recurs between frames, shifted (a motion a tracker can follow on weak
+    texture); with ``fresh_noise`` no frame's noise matches another's at any shift."""
+    r = Renderer(cam, RenderSettings(noise_sigma=8.0, fresh_noise=fresh), mucosa_target, seed=3)
+    pose = np.eye(4)
+    pose[2, 3] = 0.05
+    frames = [r.render(np.eye(4), pose).image.astype(np.float32) for _ in range(7)]
+    clean = np.mean(frames, axis=0)  # the same view every frame: the noise is what differs
+    noise = [cv2.cvtColor(f - clean, cv2.COLOR_BGR2GRAY)[200:376, 260:460] for f in frames]
+    best = max(float(cv2.matchTemplate(b, a[40:136, 40:160], cv2.TM_CCOEFF_NORMED).max())
+               for i, a in enumerate(noise) for b in noise[i + 1:])
+    assert best < 0.3 if fresh else best > 0.6, best
+
+
 def test_specular_highlights_saturate(cam, mucosa_target):
     on = Renderer(cam, RenderSettings(), mucosa_target).render(np.eye(4), make_pose((0, 0, 0.035)))
     off = Renderer(cam, RenderSettings(specular_strength=0.0), mucosa_target).render(np.eye(4), make_pose((0, 0, 0.035)))

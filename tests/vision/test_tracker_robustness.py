@@ -233,7 +233,9 @@ def test_a_weakly_textured_real_photo_target_keeps_the_lock_under_fast_motion(ca
     from targetlock.vision.evaluate import EvalSettings, render_sequence
     from targetlock.vision.texture import photo_texture
     target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
-    frames = render_sequence("fast", EvalSettings(), seed=0, cam=cam, target=target)[:30]
+    # the loop's renderer settings (sensor noise from the precomputed bank, as when this was found)
+    frames = render_sequence("fast", EvalSettings(), seed=0, cam=cam, target=target,
+                             render_settings=RenderSettings())[:30]
     tr = FeatureTracker()
     res = _run(tr, frames, [i / cam.fps for i in range(len(frames))])
     errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])

@@ -19,6 +19,10 @@ remaining frames. Default sequences (:data:`SEQUENCES`):
 ``folds``     not a plane: a lumen with ring folds that breathes and carries a peristaltic wave
               (``model.scene.SurfaceParams``), target on its wall, the tip moving sideways (parallax)
 
+Sensor noise is drawn fresh for every frame (``RenderSettings(fresh_noise=True)`` unless render
+settings are given): the loop renderer's noise bank repeats its pattern, shifted, between frames,
+which on weak texture under strong noise is a motion a tracker can follow.
+
 Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
 
 * **error**: distance (px) of a *valid* estimate from the true position of the selected point.
@@ -186,7 +190,7 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
     if name not in SEQUENCES:
         raise ValueError(f"sequence {name!r}; allowed: {', '.join(SEQUENCES)}")
     cam = cam or endoscope_camera()
-    rs = render_settings or RenderSettings()
+    rs = render_settings or RenderSettings(fresh_noise=True)
     if name == "noise":
         rs = replace(rs, noise_sigma=max(rs.noise_sigma, 8.0))
     exposure = cfg.exposure_s * (2.0 if name == "blur" else 1.0)
@@ -285,7 +289,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     """
     cfg = validate(settings or EvalSettings())
     cam = cam or endoscope_camera()
-    rs = render_settings or RenderSettings()
+    rs = render_settings or RenderSettings(fresh_noise=True)
     if cfg.tracker == "marker":
         contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
     else:

@@ -81,6 +81,9 @@ class RenderSettings:
     specular_exponent: float = param(2000.0, lo=1.0, hi=5000.0, doc="sharpness of the specular lobe (Phong exponent)")
     bump_slope: float = param(0.15, unit="rad", lo=0.0, hi=1.0, doc="RMS surface slope of the texture's height relief")
     noise_sigma: float = param(2.0, unit="DN", lo=0.0, hi=50.0, doc="sensor noise standard deviation (8-bit levels)")
+    fresh_noise: bool = param(False, doc="draw new sensor noise for every frame (~8 ms) instead of a shifted window of "
+                                         "a small precomputed bank (the same pattern, moved, recurs: on weak texture "
+                                         "under strong noise a tracker can follow the pattern's shift)")
     optical_blur_px: float = param(0.6, unit="px", lo=0.0, hi=10.0, doc="Gaussian sigma of the optics' blur; 0 disables")
     blur_step_px: float = param(2.0, unit="px", lo=0.1, hi=100.0, doc="largest image motion between exposure sub-poses")
     max_subframes: int = param(8, lo=1, hi=64, doc="most sub-poses integrated for motion blur")
@@ -1634,7 +1637,12 @@ class Renderer:
             self._draw_occluders(self._bgr, occluders, gain)
 
         # Blur, noise, field of view.
-        if self._noise:
+        if self._noise and self.settings.fresh_noise:
+            noise = self._noise[0]  # overwritten: seeded from the renderer's stream, new every frame
+            cv2.setRNGSeed(int(self._rng.integers(2 ** 31)))
+            cv2.randn(noise, 0.0, self.settings.noise_sigma)  # saturates at the dtype's range, like the bank's clip
+            oy, ox = (int(v) for v in self._rng.integers(0, 32, 2))
+        elif self._noise:
             noise = self._noise[int(self._rng.integers(len(self._noise)))]
             oy, ox = (int(v) for v in self._rng.integers(0, 32, 2))
         else:

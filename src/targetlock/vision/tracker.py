@@ -24,8 +24,11 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then
-    re-acquired locally (keyframe flow) or over the whole frame by ORB matching against the
-    keyframes, verified with RANSAC and by the optical-flow keyframe check. In the normal case
+    re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
+    keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
+    filled and their halo left out, a candidate must lead every other place and be found again on
+    the next frame where the tissue around it went), or, every few frames, by ORB matching
+    against the keyframes, verified with RANSAC and by the optical-flow keyframe check. In the normal case
     only a region of interest around the prediction is processed (a ~200 px square for an 80 px
     window).
 
@@ -213,6 +216,34 @@ def _detail(gray: np.ndarray) -> np.ndarray:
     return f - cv2.GaussianBlur(f, (0, 0), 6.0)
 
 
+def _band(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Band-passed float32 image (Gaussians of sigma ``lo`` minus ``hi`` px): texture without noise and
+    without the slow shading (light fall-off, smoothly filled glints)."""
+    f = img.astype(np.float32)
+    return cv2.GaussianBlur(f, (0, 0), lo) - cv2.GaussianBlur(f, (0, 0), hi)
+
+
+def _peaks(score: np.ndarray, radius: int) -> tuple[tuple[int, int], float, float]:
+    """Best place (x, y) of a correlation map, its score and the best score farther than ``radius``."""
+    _, top, _, loc = cv2.minMaxLoc(score)
+    other = score.copy()
+    cv2.circle(other, loc, radius, -2.0, -1)
+    _, second, _, _ = cv2.minMaxLoc(other)
+    return loc, float(top), float(second)
+
+
+def _subpixel(score: np.ndarray, loc: tuple[int, int]) -> np.ndarray:
+    """Peak ``loc`` (x, y) of a correlation map refined by a parabola through its neighbours (px)."""
+    x, y = loc
+    out = np.array([x, y], float)
+    for k, (a, b) in enumerate(((score[y, x - 1:x], score[y, x + 1:x + 2]), (score[y - 1:y, x], score[y + 1:y + 2, x]))):
+        if a.size and b.size:
+            den = float(a[0]) - 2.0 * float(score[y, x]) + float(b[0])
+            if den < 0.0:
+                out[k] += float(np.clip(0.5 * (float(a[0]) - float(b[0])) / den, -0.5, 0.5))
+    return out
+
+
 # ----------------------------------------------------------------------------- feature tracker
 @dataclass(frozen=True)
 class TrackerSettings:
@@ -239,6 +270,11 @@ class TrackerSettings:
     keyframe_scale: float = param(0.3, lo=0.01, hi=2.0, doc="scale range of a keyframe (relative); a new one is made at half of it")
     keyframe_rotation_deg: float = param(40.0, unit="deg", lo=0.5, hi=90.0,
                                          doc="rotation range of a keyframe; a new one is made at half of it")
+    keyframe_min_confidence: float = param(0.3, lo=0.0, hi=1.0,
+                                           doc="a frame whose match confidence (share and number of inliers) is lower "
+                                               "is a weak match for making keyframes")
+    weak_keyframes: int = param(0, lo=0, hi=1000,
+                                doc="most keyframes made in a row from weak matches (each hands its error on)")
     highlight_margin_px: int = param(3, unit="px", lo=0, hi=50,
                                      doc="highlights are grown by this margin before masking and filling")
     saturation_level: int = param(190, lo=1, hi=255,
@@ -259,6 +295,11 @@ class TrackerSettings:
                                           "patch counts as covered")
     dense_min_ecc: float = param(0.6, lo=0.0, hi=1.0,
                                  doc="least ECC correlation of the dense keyframe match (weak texture) that agrees with the chain")
+    dense_min_ncc: float = param(0.35, lo=0.0, hi=1.0,
+                                 doc="least correlation of the dense keyframe match (weak texture; band-passed) that "
+                                     "agrees with the chain (band-passed, glints' halo left out; tried when ECC fails)")
+    dense_radius_px: float = param(8.0, unit="px", lo=1.0, hi=100.0,
+                                   doc="the dense keyframe match searches this far around the prediction")
     patch_blur_ncc: float = param(0.3, lo=-1.0, hi=1.0,
                                   doc="a target patch with less texture energy, evenly spread, that still correlates "
                                       "this much is the same tissue blurred (weak texture under motion blur), not covered")
@@ -266,9 +307,18 @@ class TrackerSettings:
                                      doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
-    reacquire_every: int = param(2, lo=1, hi=1000, doc="while lost, search the whole frame on every n-th frame")
+    reacquire_every: int = param(4, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th frame")
     reacquire_min_inliers: int = param(12, lo=4, hi=1000, doc="fewest ORB RANSAC inliers to accept a re-acquisition")
     reacquire_ratio: float = param(0.8, lo=0.1, hi=1.0, doc="Lowe ratio for ORB descriptor matches")
+    dense_reacquire: bool = param(True, doc="while lost, also search the frame densely for the keyframes' band-passed "
+                                            "target window (weak texture, where ORB finds no keypoints)")
+    dense_reacquire_ncc: float = param(0.35, lo=0.0, hi=1.0,
+                                       doc="least normalised correlation of a dense re-acquisition candidate")
+    dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
+                                        doc="least ratio of the candidate's correlation to the best other place's")
+    dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
+                                    doc="a dense candidate is accepted when the next frame finds it again where the "
+                                        "tissue around it moved, within this distance")
 
     def check(self, prefix: str = "") -> None:
         if self.lk_window_px % 2 == 0:
@@ -284,6 +334,7 @@ class _View:
     to_frame: np.ndarray
     sat: np.ndarray
     raw: np.ndarray
+    fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
 
     def local(self) -> np.ndarray:
@@ -307,7 +358,8 @@ class _Keyframe:
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
-    detail: np.ndarray | None = None  # high-passed gray of the region (dense match), made on first use
+    detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
+    band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -318,13 +370,13 @@ class FeatureTracker(Tracker):
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
-        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                    patchSize=31, fastThreshold=10)
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                        patchSize=31, fastThreshold=10)
         self._clahe: dict = {}
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
         self._fov: np.ndarray | None = None
@@ -333,12 +385,15 @@ class FeatureTracker(Tracker):
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
-                      "retried": 0}
+                      "retried": 0, "dense_reacquisitions": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
         self._clock = FrameClock()
         self._retry = False  # the optical flow runs on local-mean-free images (exposure retry)
+        self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
+        self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
+        self._fov_half: np.ndarray | None = None
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -410,7 +465,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw)
+        return _View(norm, to_frame, sat, raw, fov)
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -627,6 +682,7 @@ class FeatureTracker(Tracker):
         self._vel_known = False
         self._misses = 0
         self._recent: deque[_Keyframe] = deque(maxlen=s.keyframes)
+        self._weak_keys = 0  # keyframes made in a row from weak matches
         self._side = int(min(frame_bgr.shape[0], frame_bgr.shape[1],
                              math.ceil(1.3 * self._window + 2 * (s.search_margin_px + s.lk_window_px // 2 + 1))))
         self._hann = None
@@ -754,13 +810,13 @@ class FeatureTracker(Tracker):
         ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
         return self._motion(ksrc, kdst, kf.target), ksrc, kdst, wv
 
-    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+    def _match_ecc(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
         """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
-        blur, noise, an exposure step): the keyframe's target window (highlights left out) is
-        aligned with this frame's region ``wv`` (already warped by the prediction ``key_to_pred``)
-        by ECC, a correlation that is invariant to gain and offset. Returns (keyframe frame ->
-        this frame, 3x3; the correlation) or None when it does not converge or correlates less
-        than ``dense_min_ecc``."""
+        blur, noise, an exposure step): the keyframe's high-passed target window (this frame's
+        highlights left out) is aligned with this frame's region ``wv`` (already warped by the
+        prediction ``key_to_pred``) by ECC, a correlation that is invariant to gain and offset.
+        Returns (keyframe frame -> this frame, 3x3; the correlation) or None when it does not
+        converge or correlates less than ``dense_min_ecc``; then :meth:`_match_dense` tries."""
         s = self.settings
         half = int(0.5 * self._window)
         t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
@@ -786,6 +842,37 @@ class FeatureTracker(Tracker):
             return None
         return key_to_pred @ _translation(d), float(rho)
 
+    def _match_dense(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
+        """Dense fallback when too few of keyframe ``kf``'s corners can be followed (weak texture,
+        blur, noise, an exposure step): the keyframe's band-passed target window is correlated
+        (normalised, so invariant to gain and offset) with this frame's region ``wv`` (already
+        warped by the prediction ``key_to_pred``) within ``dense_radius_px``; highlights and their
+        halo are left out of both. Returns (keyframe frame -> this frame, 3x3; the correlation) or
+        None when the best place correlates less than ``dense_min_ncc``."""
+        s = self.settings
+        bp, valid = self._kf_band(kf)
+        half = int(0.5 * self._window)
+        r = int(math.ceil(s.dense_radius_px))
+        t = np.round(kf.target - kf.view.to_frame[:2, 2]).astype(int)
+        h, w = bp.shape
+        x0, y0 = max(r, t[0] - half), max(r, t[1] - half)
+        x1, y1 = min(w - r, t[0] + half + 1), min(h - r, t[1] + half + 1)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        ok = valid[y0:y1, x0:x1] > 0
+        if np.count_nonzero(ok) < 0.3 * ok.size:
+            return None
+        tpl = np.where(ok, bp[y0:y1, x0:x1], np.float32(0.0))
+        img = _band(wv.gray[y0 - r:y1 + r, x0 - r:x1 + r], *self._BAND_FULL)
+        near = self._band_valid(wv.fov[y0 - r:y1 + r, x0 - r:x1 + r], wv.sat[y0 - r:y1 + r, x0 - r:x1 + r], 1.0)
+        img[near == 0] = 0.0
+        score = cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)
+        _, top, _, loc = cv2.minMaxLoc(score)
+        if not top >= s.dense_min_ncc:
+            return None
+        d = _subpixel(score, loc) - r  # shift in the keyframe's (and the warped region's) pixels
+        return key_to_pred @ _translation(d), float(top)
+
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         s = self.settings
         self.stats["frames"] += 1
@@ -797,6 +884,10 @@ class FeatureTracker(Tracker):
             res = self._track(frame_bgr, relock=True)
             if res is None and s.reacquire and self._lost_frames % s.reacquire_every == 1 % s.reacquire_every:
                 res = self._reacquire(frame_bgr)
+            if res is None and s.reacquire and s.dense_reacquire:
+                res = self._reacquire_dense(frame_bgr)
+            if res is not None:
+                self._dense_tpl = self._cand = None
             if res is None:
                 return TrackResult(np.full(2, np.nan), 0.0, False, True)
             return res
@@ -824,6 +915,7 @@ class FeatureTracker(Tracker):
             self._vel_known = False
             self._gap = 0.0
             self._lost_frames = 0
+            self._dense_tpl = self._cand = None
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
         return TrackResult(self._pos.copy(), 0.0, False, False)
 
@@ -871,7 +963,12 @@ class FeatureTracker(Tracker):
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
         if key is None and current is not None and chain is not None and not relock:
-            dense = self._match_dense(self._key, *current)  # checked against the chain below
+            # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
+            # halo out, which on weak texture can outweigh the tissue). An ECC match that
+            # disagrees with the chain is a warning kept: the frame is rejected below.
+            dense = self._match_ecc(self._key, *current)
+            if dense is None:
+                dense = self._match_dense(self._key, *current)
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
@@ -931,6 +1028,7 @@ class FeatureTracker(Tracker):
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
+        match_conf = conf  # the evidence of the match itself
         conf *= min(1.0, ncc / s.patch_keyframe_ncc)
         # One-sided support (inliers only on one side: the rest covered or out of view) is an
         # extrapolation: less confident.
@@ -964,8 +1062,13 @@ class FeatureTracker(Tracker):
             self._key = kf
         # Only from a well-supported estimate: features on all sides of the target (no
         # extrapolation, which drifts at the edge of the view), its own patch unchanged.
+        # A weak match (few of the keyframe's features) hands its error on to the next keyframe:
+        # renewing from such frames one after another drifts off the target, so at most
+        # ``weak_keyframes`` in a row (default none: more keep weak texture tracked longer, but
+        # drifted into false locks on unseen sequences).
+        weak = match_conf < s.keyframe_min_confidence
         supported = (surrounded and self._in_view(est, inner=True)
-                     and ncc >= s.patch_keyframe_ncc)
+                     and ncc >= s.patch_keyframe_ncc and (not weak or self._weak_keys < s.weak_keyframes))
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
@@ -973,6 +1076,7 @@ class FeatureTracker(Tracker):
             if kf_new is not None:
                 self._recent.append(kf_new)
                 self._key = kf_new
+                self._weak_keys = self._weak_keys + 1 if weak else 0
         if relock:
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
@@ -1025,6 +1129,166 @@ class FeatureTracker(Tracker):
             return None
         conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
         return self._relocked(est, kf, sim, base, kdst[inl], conf)
+
+    # ------------------------------------------------------- dense re-acquisition
+    _BAND_FULL = (1.0, 6.0)  # band-pass sigmas (px) at full resolution; at half resolution half of them
+
+    def _band_valid(self, fov: np.ndarray, sat: np.ndarray, scale: float) -> np.ndarray:
+        """uint8 mask (255: usable) of a band-passed region at ``scale``: inside the field of view and
+        clear of highlights by the band-pass's reach (a glint's filled blob still leaves a ring of
+        its halo there, which would match any bright blob, e.g. a glint that stays put)."""
+        k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
+        near = cv2.dilate(sat.view(np.uint8), np.ones((k, k), np.uint8))
+        return cv2.bitwise_and(cv2.erode(fov, np.ones((k, k), np.uint8)), cv2.bitwise_not(near * 255))
+
+    def _kf_band(self, kf: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        """Band-passed gray of keyframe ``kf``'s region and its usable mask (:meth:`_band_valid`)."""
+        if kf.band is None:
+            kf.band = _band(kf.view.gray, *self._BAND_FULL), self._band_valid(kf.view.fov, kf.view.sat, 1.0)
+        return kf.band
+
+    def _dense_template(self, kf: _Keyframe, scale: float) -> tuple[np.ndarray, float] | None:
+        """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or 0.5)
+        to the scale and rotation of the last accepted view; highlights and what lies outside the
+        field of view are zero (neutral for the correlation). Returns (template, its texture energy
+        per valid pixel) or None when too little of it is usable."""
+        bp, valid = self._kf_band(kf)
+        rel = self._from_anchor @ _inv(kf.from_anchor)   # keyframe -> last accepted frame
+        lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
+        half = int(round(0.5 * self._window * scale))
+        side = 2 * half + 1
+        t_local = kf.target - kf.view.to_frame[:2, 2]
+        m = np.hstack([lin_inv, (t_local - lin_inv @ np.array([half, half], float))[:, None]])
+        flags = cv2.WARP_INVERSE_MAP
+        tpl = cv2.warpAffine(bp, m, (side, side), flags=cv2.INTER_LINEAR | flags, borderValue=0)
+        ok = cv2.warpAffine(valid, m, (side, side), flags=cv2.INTER_NEAREST | flags, borderValue=0) > 0
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok < 0.3 * ok.size:
+            return None
+        tpl[~ok] = 0.0
+        return tpl, float(np.dot(tpl.ravel(), tpl.ravel())) / n_ok
+
+    def _dense_image(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The whole frame at half resolution, normalised, highlights filled, band-passed (zero near
+        highlights and the field of view's edge), and its field-of-view mask."""
+        h, w = frame.shape[:2]
+        if self._fov_half is None:
+            self._fov_half = cv2.resize(self._fov, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+        small_bgr = cv2.resize(frame, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        gray = cv2.cvtColor(small_bgr, cv2.COLOR_BGR2GRAY) if small_bgr.ndim == 3 else small_bgr
+        fov = self._fov_half
+        view = self._normalise(gray, fov, self._highlights(small_bgr, gray, fov), np.eye(3))
+        img = _band(view.gray, 0.5 * self._BAND_FULL[0], 0.5 * self._BAND_FULL[1])
+        img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
+        return img, fov
+
+    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
+        """Best place (frame px) of the keyframes' dense templates in the whole frame (half
+        resolution, refined at full resolution), with its keyframe and correlation, if it stands
+        out: correlation >= ``dense_reacquire_ncc`` and ``dense_reacquire_lead`` times that
+        of any other place. Glints are filled smoothly before band-passing, so a glint
+        (which stays put in the image while the tissue moves) cannot be matched."""
+        s = self.settings
+        if self._dense_tpl is None:
+            kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
+            self._dense_tpl = []
+            for kf in dict.fromkeys(kfs):  # unique, in order
+                small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
+                # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
+                if small is not None and full is not None and full[1] >= 2.25:
+                    self._dense_tpl.append((kf, small[0], full[0]))
+        if not self._dense_tpl:
+            return None
+        img, fov = self._dense_image(frame)
+        best = None
+        for kf, small, full in self._dense_tpl:
+            half = small.shape[0] // 2
+            score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
+            score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
+            loc, top, second = _peaks(score, max(3, half // 2))
+            if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
+                    (best is None or top > best[2]):
+                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5, kf, top, full)
+        if best is None:
+            return None
+        p0, kf, top, full = best
+        # Full resolution, within a few px of the half-resolution peak.
+        base = self._crop(frame, p0)
+        img = _band(base.gray, *self._BAND_FULL)
+        half = full.shape[0] // 2
+        r = 4
+        c = np.round(p0 - base.to_frame[:2, 2]).astype(int)
+        x0, y0 = c[0] - half - r, c[1] - half - r
+        if x0 < 0 or y0 < 0 or y0 + full.shape[0] + 2 * r > img.shape[0] or x0 + full.shape[1] + 2 * r > img.shape[1]:
+            return None
+        score = cv2.matchTemplate(img[y0:y0 + full.shape[0] + 2 * r, x0:x0 + full.shape[1] + 2 * r], full,
+                                  cv2.TM_CCOEFF_NORMED)
+        _, top_f, _, loc = cv2.minMaxLoc(score)
+        if top_f < s.dense_reacquire_ncc:
+            return None
+        p = _subpixel(score, loc) + [x0 + half, y0 + half] + base.to_frame[:2, 2]
+        return p, kf, min(top, top_f)
+
+    def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
+        """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
+        that finds it again where the tissue around it went (the candidate's own band-passed
+        surroundings followed by correlation): one good-looking frame is not enough."""
+        s = self.settings
+        found = self._dense_search(frame)
+        cand, self._cand = self._cand, None
+        if found is None:
+            return None
+        p, kf, top = found
+        view = self._crop(frame, p)
+        img = _band(view.gray, *self._BAND_FULL)
+        half = int(round(0.5 * self._window))
+        if cand is not None:
+            q, patch = cand
+            # where the tissue around the previous candidate went (at most a jump away)
+            r = int(min(s.max_jump_px * self._steps, s.search_margin_px))
+            c = np.round(q - view.to_frame[:2, 2]).astype(int)
+            x0, y0 = c[0] - half - r, c[1] - half - r
+            if x0 >= 0 and y0 >= 0 and y0 + 2 * (half + r) + 1 <= img.shape[0] and x0 + 2 * (half + r) + 1 <= img.shape[1]:
+                score = cv2.matchTemplate(img[y0:y0 + 2 * (half + r) + 1, x0:x0 + 2 * (half + r) + 1], patch,
+                                          cv2.TM_CCOEFF_NORMED)
+                _, top_m, _, loc = cv2.minMaxLoc(score)
+                moved = _subpixel(score, loc) + [x0 + half, y0 + half] + view.to_frame[:2, 2]
+                if top_m >= s.dense_reacquire_ncc and np.hypot(*(moved - p)) <= s.dense_confirm_px:
+                    rel = _similarity(self._from_anchor @ _inv(kf.from_anchor), kf.target)
+                    key_to_cur = rel.copy()
+                    key_to_cur[:2, 2] += p - _apply(rel, kf.target)
+                    # Refined like a tracked frame: the keyframe's corners (affine: follows the lens
+                    # distortion), else its dense window (ECC); the template's place is only a seed.
+                    # Without either (too weak a texture), the template's place is followed but not
+                    # reported until the next frame tracks it (near the edge of the view the lens
+                    # distortion deforms the template: its place may be several px off).
+                    km, _, kdst, wv = self._match_keyframe(view, kf, key_to_cur)
+                    dense = self._match_dense(kf, key_to_cur, wv) if km is None else None
+                    if km is not None:
+                        key_to_cur = km[0]
+                    elif dense is not None:
+                        key_to_cur = dense[0]
+                    p_ref = _apply(key_to_cur, kf.target)
+                    if np.hypot(*(p_ref - p)) > s.dense_confirm_px + 4.0 or not self._in_view(p_ref):
+                        return None
+                    p = p_ref
+                    key_to_cur = _similarity(key_to_cur, kf.target)
+                    pts = self._features(view, p, 0.5 * self._window, 0.1 * s.feature_quality)
+                    # the target's own patch must look like the keyframe's (as on every tracked frame)
+                    ncc, _ = self._patch_similarity(view, kf, key_to_cur)
+                    if ncc < s.patch_reject_ncc:
+                        return None
+                    self.stats["dense_reacquisitions"] += 1
+                    res = self._relocked(p, kf, key_to_cur, view, pts, 0.5 * top)
+                    if km is None and dense is None:  # tentative: reported once the next frame tracks
+                        # it, lost again at its first miss
+                        self._misses = s.max_misses
+                        return TrackResult(np.full(2, np.nan), 0.0, False, True)
+                    return res
+        c = np.round(p - view.to_frame[:2, 2]).astype(int)
+        if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
+            self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy()
+        return None
 
     def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
                   conf: float) -> TrackResult:
