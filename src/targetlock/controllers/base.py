@@ -43,7 +43,7 @@ REPORT_I_GAIN = 300.0
 @dataclass(frozen=True)
 class ControllerConfig:
     """Settings of all controllers (each reads the ones it needs)."""
-    kind: str = param("pi-hc", choices=CONTROLLERS, doc="controller: PI, PI + hysteresis compensation (model 1 / 2), "
+    kind: str = param("adaptive", choices=CONTROLLERS, doc="controller: PI, PI + hysteresis compensation (model 1 / 2), "
                                                         "inverse kinematics, PI with latency prediction, self-calibrating (online estimation)")
     i_gain: float = param(-1.0, unit="tick/(px·s)", lo=-1.0, hi=1e5,
                           doc="integral gain I of Eq. 4.2; -1: the controller's default (300 as in the report, pi-smith 800; ik and adaptive have none)")
