@@ -153,7 +153,7 @@ def write_results_page(md_path: Path, img_dir: Path, extra_rows: list[str] | Non
     lines += ["## Vision in the loop (rendered frames, feature tracker), straight path, report geometry", "",
               "| controller | ideal rms | ideal peak | vision rms | vision peak | tracker median | tracker p95 | "
               "frames lost | speed |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for kind in ("pi-hc", "pi-smith"):
+    for kind in ("pi-hc", "pi-smith", "adaptive"):
         ideal = results[("linear", kind)][0]
         v = run_target_lock(dataclasses.replace(scenario("linear", kind, 0.4), vision=True))
         vs = v["vision"]
