@@ -106,7 +106,6 @@ class AdaptiveController(Controller):
         self.effective = self.tip_model.update(t, motor) / self.cfg.tip_gain
         if obs is None:
             return None
-        cfg = self.cfg
         x = np.asarray(obs.offset, dtype=float)
         c = float(obs.capture_time)
         est = self.jacobian
