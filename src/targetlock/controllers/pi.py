@@ -37,10 +37,9 @@ from collections import deque
 
 import numpy as np
 
+from ..estimation.tip_model import TipModel
 from ..model.camera import project, unproject, world_to_camera
-from ..model.drives import DriveParams
 from ..model.kinematics import tip_pose
-from ..model.endoscope import advance, initial_state, pack_params
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
@@ -98,16 +97,12 @@ class PIController(Controller):
         latency = knowledge.latency
         e = knowledge.endoscope
         self.geometry = (e.tip_length, e.n_elements)
-        # Online model for the predictor: the handle follows the measured motor exactly.
-        self.model_params = pack_params(e,
-                                        DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3))
-        self.model_dt = model_dt
-        self.model_state = initial_state(1)
+        # Online model for the predictor (pi-smith): the assumed endoscope fed the measured motor.
         self.kind = cfg.kind
         self.i_gain = cfg.integral_gain * self.rad_per_tick      # rad/(px·s)
         self.p_gain = cfg.p_gain * self.rad_per_tick      # rad/px
         delay = latency if cfg.motor_delay < 0 else cfg.motor_delay
-        self.tip_history = History(delay + 1.0, self.control_dt)   # online model's tip angles (pi-smith)
+        self.tip_model = TipModel(e, model_dt=model_dt, horizon=delay + 1.0)
         self.target_track: deque = deque(maxlen=5)                  # (capture time, world position) of the target
         self.integrator = np.zeros(2)
         self.direction = np.ones(2)
@@ -119,13 +114,7 @@ class PIController(Controller):
         self.compensation = np.zeros(2)
         self.target_track.clear()
         if self.kind == "pi-smith":
-            # The tip got to this motor position by bending outwards from straight.
-            self.model_state = initial_state(1)
-            for f in np.linspace(0.0, 1.0, 50)[1:]:
-                advance(self.model_state, self.model_params, (f * motor)[None, :], self.model_dt, 40)
-            advance(self.model_state, self.model_params, motor[None, :], self.model_dt, 1000)
-            self.tip_history.clear()
-            self.tip_history.push(t, self.model_state[0, 2:4])
+            self.tip_model.reset(t, motor)     # the tip got here bending outwards from straight
 
     def _predict(self, x: np.ndarray, phi_then: np.ndarray, phi_now: np.ndarray,
                  t_capture: float = 0.0, t_now: float = 0.0) -> np.ndarray:
@@ -166,14 +155,12 @@ class PIController(Controller):
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray:
         if self.kind == "pi-smith":
-            advance(self.model_state, self.model_params, motor[None, :], self.model_dt,
-                    max(1, int(round(self.control_dt / self.model_dt))))
-            self.tip_history.push(t, self.model_state[0, 2:4])
+            self.tip_model.update(t, motor)
         if obs is None:
             return None  # hold: no integration without a valid observation
         x = np.asarray(obs.offset, dtype=float)
         if self.kind == "pi-smith":
-            x = self._predict(x, self.tip_history.at(obs.capture_time), self.tip_history.at(t), obs.capture_time, t)
+            x = self._predict(x, self.tip_model.tip_at(obs.capture_time), self.tip_model.tip, obs.capture_time, t)
         dt = self.frame_dt(obs)
         self.integrator = self._clamp_integrator(self.integrator + self.i_gain * x * dt)
         if self.kind != "pi":
