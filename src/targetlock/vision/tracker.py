@@ -766,10 +766,9 @@ class FeatureTracker(Tracker):
             g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
-            g = g.astype(np.float32)
             # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
             # fill of glints), which changes with the view and is not the target's appearance
-            return cv2.GaussianBlur(g, (5, 5), 1.0) - cv2.GaussianBlur(g, (0, 0), 4.0), sat == 0
+            return _band(g, 1.0, 4.0), sat == 0
 
         if kf.patch is None:
             ref, ok_ref = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
