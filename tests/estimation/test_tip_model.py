@@ -109,3 +109,24 @@ def test_bad_input():
     tip = model.update(0.02, np.array([np.nan, 0.0]))           # NaN measurement: holds the last
     assert np.all(np.isfinite(tip))
     assert np.array_equal(model.update(0.01, np.ones(2)), tip)   # not after the last update: unchanged
+
+
+def test_candidates_run_side_by_side_match_each_run_alone():
+    a, b = EndoscopeParams(), EndoscopeParams(cable_slack=0.0015, mu_n=0.15)
+    both, alone = TipModel([a, b]), [TipModel(a), TipModel(b)]
+    start = np.radians([20.0, -10.0])
+    for m in (both, *alone):
+        m.reset(0.0, start)
+    for k in range(1, 150):
+        handle = start + np.radians([15.0 * np.sin(0.05 * k), 8.0 * np.cos(0.07 * k)])
+        for m in (both, *alone):
+            m.update(0.02 * k, handle)
+    times = np.array([1.0, 2.345, 2.9])
+    all_tips = both.all_tips_at(times)
+    assert all_tips.shape == (3, 2, 2)
+    for i, m in enumerate(alone):
+        np.testing.assert_allclose(all_tips[:, i], m.tips_at(times), atol=1e-12)
+    assert not np.allclose(all_tips[:, 0], all_tips[:, 1])        # the slacker scope lags
+    both.member = 1
+    np.testing.assert_allclose(both.tips_at(times), alone[1].tips_at(times), atol=1e-12)
+    assert both.endoscope == b

@@ -65,6 +65,8 @@ class ControllerConfig:
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
     adaptive_servo_gain: float = param(0.3, lo=0.01, hi=1.0, doc="adaptive: fraction of the predicted error removed per frame")
+    adaptive_candidates: int = param(32, lo=1, hi=256,
+                                     doc="adaptive: candidate endoscopes run around the assumed one, the one that best explains the image steering (1: the assumed only)")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")

@@ -19,7 +19,9 @@ output stays within stated physical limits whatever the input (noise, dropped fr
   tracker's scale;
 * :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging;
 * :class:`TipModel` — the assumed (nominal) endoscope run online on the measured handle angles:
-  modelled tip angles with hysteresis and stick-slip, and their recent history.
+  modelled tip angles with hysteresis and stick-slip, and their recent history; several candidate
+  scopes side by side (:func:`scope_candidates`), of which :class:`ScopeSelector` picks the one whose
+  motion best explains the image.
 """
 from __future__ import annotations
 
@@ -28,10 +30,11 @@ from .delay import DelayEstimator, DelayFitEstimator
 from .depth import DepthEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
 from .probe import ProbeSignal, nominal_width
+from .scope_bank import ScopeSelector, scope_candidates
 from .tip_jacobian import TipJacobianEstimator, image_jacobian_parts
 from .tip_model import TipModel
 
 __all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
            "BacklashFitEstimator", "DepthEstimator",
            "ProbeSignal", "nominal_width", "TipModel", "TipJacobianEstimator",
-           "image_jacobian_parts"]
+           "image_jacobian_parts", "ScopeSelector", "scope_candidates"]

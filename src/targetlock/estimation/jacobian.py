@@ -149,6 +149,14 @@ class JacobianEstimator:
         out = bound_jacobian(j, self.prior, sv_min=self.sv_min, sv_max=self.sv_max, max_coupling=self.max_coupling)
         return self.j if out is None else out
 
+    def rescale(self, columns: np.ndarray) -> None:
+        """Carry J over to a motor-side unit that differs per axis: its columns times ``columns`` (2,),
+        bounded as every estimate is (e.g. when the modelled tip motion J relates to is replaced)."""
+        out = bound_jacobian(self.j * np.asarray(columns, dtype=float)[None, :], self.prior, sv_min=self.sv_min,
+                             sv_max=self.sv_max, max_coupling=self.max_coupling)
+        if out is not None:
+            self.j = out
+
     @property
     def gain_scale(self) -> float:
         """Geometric mean of the singular values (px/rad): the 'size' of J."""

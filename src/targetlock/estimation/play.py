@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["play", "high_pass", "fit_rough"]
+__all__ = ["play", "high_pass", "fit_rough", "rough_residuals"]
 
 
 def play(m: np.ndarray, widths: np.ndarray, start: float | None = None) -> np.ndarray:
@@ -44,13 +44,23 @@ def high_pass(z: np.ndarray, span: int, axis: int) -> np.ndarray:
 
 
 def fit_rough(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.3,
-              span: int = 15) -> tuple[np.ndarray, np.ndarray]:
+              span: int = 15, common_outliers: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """For each candidate motion ``p`` (k, n, 2) (rad) and the offsets ``x`` (n, 2) (px): the J (k, 2, 2)
     that best maps the high-passed increments of p onto those of x, pulled towards ``prior`` (2, 2) (ridge
     of ``ridge`` × the mean excitation, so a window with little or one-sided motion keeps the prior
     where it says nothing), and the L1 roughness (k,) of the residual ``Hx − J·Hp``, H: the frame
-    increments less their running mean over ``span`` frames. Rows whose residual exceeds 3× the median (tracker outliers, target jumps) are
-    dropped and the fit repeated once."""
+    increments less their running mean over ``span`` frames. Rows whose residual exceeds 3× the median
+    (tracker outliers, target jumps) are dropped and the fit repeated once; with ``common_outliers`` the
+    same rows for every candidate (those that most candidates fail on), so a candidate is not rewarded
+    for the rows only it cannot explain (e.g. a stick-slip jump that only the right model predicts)."""
+    j, rn, w = rough_residuals(x, p, prior, ridge, span, common_outliers)
+    return j, np.sum(rn * w, axis=1) / np.maximum(np.sum(w, axis=1), 1.0) * rn.shape[1]
+
+
+def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.3, span: int = 15,
+                    common_outliers: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fit of :func:`fit_rough`, returning per candidate the J (k, 2, 2), each row's residual norm
+    (k, n-1) (px) and the rows kept (k, n-1) (1 kept, 0 dropped as an outlier)."""
     # Frame increments less their running mean over ``span`` frames: the target's own velocity, slowly
     # varying, drops out; our motion's starts, stops and reversals stay.
     dx = high_pass(np.diff(x, axis=0), span, 0)       # (n-1, 2)
@@ -62,7 +72,9 @@ def fit_rough(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.
         g = g + lam * np.eye(2)
         b = np.einsum("kn,kni,nj->kij", w, dp, dx) + lam * np.asarray(prior, dtype=float).T   # (k, 2 [p], 2 [x])
         jt = np.linalg.solve(g, b)                    # J transposed per candidate
-        r = dx[None] - dp @ jt                        # (k, n-2, 2)
+        r = dx[None] - dp @ jt                        # (k, n-1, 2)
         rn = np.sqrt(np.sum(r * r, axis=-1))
         w = (rn <= 3.0 * np.median(rn, axis=1, keepdims=True) + 1e-12).astype(float)
-    return np.transpose(jt, (0, 2, 1)), np.sum(rn * w, axis=1) / np.maximum(np.sum(w, axis=1), 1.0) * rn.shape[1]
+        if common_outliers:
+            w = np.broadcast_to(np.median(w, axis=0) >= 0.5, w.shape).astype(float)
+    return np.transpose(jt, (0, 2, 1)), rn, w

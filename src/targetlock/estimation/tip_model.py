@@ -16,11 +16,16 @@ axis, which an estimator of the image Jacobian relative to the modelled tip abso
 At reset the tip is assumed to have reached the current handle angles by bending outwards from
 straight (as the clinician bent it before engaging); the true state inside the hysteresis band is
 unknown, and the model forgets that assumption after the first reversal beyond the band.
+
+It can run several candidate endoscopes side by side on the same handle angles (the kernel is batched:
+32 candidates cost about twice one); one of them, :attr:`TipModel.member`, is the one read by
+:attr:`~TipModel.tip` and :meth:`~TipModel.tips_at`, and :meth:`~TipModel.all_tips_at` reads them all.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -37,22 +42,27 @@ class TipModel:
     """Nominal-endoscope model fed with measured handle angles (rad) at times (s); modelled tip angles
     (rad) at any recent time.
 
-    ``endoscope``: the assumed parameters; ``model_dt`` (s): the kernel's step; ``horizon`` (s): how far
+    ``endoscope``: the assumed parameters, or a sequence of candidate endoscopes run together (the
+    first is the member read until :attr:`member` is changed); ``model_dt`` (s): the kernel's step; ``horizon`` (s): how far
     back :meth:`tip_at` can look (older times are clamped to the oldest sample); ``max_gap`` (s): a
     longer gap between two updates (a stalled loop) is bridged at the newest handle angle held, not
     by interpolation over it."""
 
-    def __init__(self, endoscope: EndoscopeParams, *, model_dt: float = 0.001, horizon: float = 3.0,
-                 max_gap: float = 0.2) -> None:
+    def __init__(self, endoscope: EndoscopeParams | Sequence[EndoscopeParams], *, model_dt: float = 0.001,
+                 horizon: float = 3.0, max_gap: float = 0.2) -> None:
         if not 1e-5 <= model_dt <= 0.02:
             raise ValueError(f"TipModel: model_dt = {model_dt} s; allowed: [1e-05, 0.02] s")
         if not horizon > 0:
             raise ValueError(f"TipModel: horizon = {horizon} s; allowed: > 0 s")
-        self.endoscope = endoscope
+        self.endoscopes = [endoscope] if isinstance(endoscope, EndoscopeParams) else list(endoscope)
+        if not self.endoscopes:
+            raise ValueError("TipModel: no endoscope given")
+        self.member = 0
+        """Index of the candidate endoscope that :attr:`tip` and :meth:`tips_at` read."""
         self.model_dt = float(model_dt)
         self.max_gap = float(max_gap)
-        self.params = pack_params(endoscope, _FOLLOW)
-        self.state = initial_state(1)
+        self.params = pack_params(self.endoscopes, _FOLLOW)
+        self.state = initial_state(len(self.endoscopes))
         self.horizon = float(horizon)
         self._times: deque[float] = deque()
         self._tips: deque[np.ndarray] = deque()
@@ -63,7 +73,7 @@ class TipModel:
               model_dt: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
         """The assumed scope's hysteresis loop about the handle angles ``handle`` (rad): each axis alone
         driven in two slow triangle cycles (±``amplitude`` rad at ``rate`` rad/s) from a fresh start
-        there, analysed by :func:`hysteresis_loop`. Returns (slope, width) per axis: tip rad per handle
+        there, analysed by :func:`hysteresis_loop` (of the :attr:`member` read). Returns (slope, width) per axis: tip rad per handle
         rad on a moving branch, and the handle rad lost at a reversal. Runs on a separate state (this
         model's history is untouched); about 0.1 s of CPU."""
         handle = np.asarray(handle, dtype=float)
@@ -79,9 +89,14 @@ class TipModel:
         return slope, width
 
     @property
+    def endoscope(self) -> EndoscopeParams:
+        """The parameters of the member read."""
+        return self.endoscopes[self.member]
+
+    @property
     def tip(self) -> np.ndarray:
-        """Modelled tip angles (rad) at the last update."""
-        return self.state[0, 2:4].copy()
+        """Modelled tip angles (rad) of the member read, at the last update."""
+        return self.state[self.member, 2:4].copy()
 
     @property
     def time(self) -> float:
@@ -94,11 +109,12 @@ class TipModel:
         handle = np.asarray(handle, dtype=float)
         if handle.shape != (2,) or not np.all(np.isfinite(handle)) or not math.isfinite(t):
             raise ValueError(f"TipModel.reset: handle = {handle} rad must be 2 finite angles, t = {t} s finite")
-        self.state = initial_state(1)
-        ramp = np.linspace(0.0, 1.0, 51)[1:, None, None] * handle[None, None, :]
+        k = len(self.endoscopes)
+        self.state = initial_state(k)
+        ramp = np.linspace(0.0, 1.0, 51)[1:, None, None] * np.broadcast_to(handle, (1, k, 2))
         simulate(self.state, self.params, ramp, 0.002, 10)
-        advance(self.state, self.params, handle[None, :], 0.002, 500)
-        self.state[0, 4:6] = 0.0
+        advance(self.state, self.params, np.broadcast_to(handle, (k, 2)).copy(), 0.002, 500)
+        self.state[:, 4:6] = 0.0
         self._time = float(t)
         self._handle = handle.copy()
         self._times.clear()
@@ -118,7 +134,7 @@ class TipModel:
             return self.tip
         start = self._handle if span <= self.max_gap else handle
         frac = (np.arange(1, n + 1) / n)[:, None, None]
-        path = start[None, None, :] + frac * (handle - start)[None, None, :]
+        path = np.repeat(start[None, None, :] + frac * (handle - start)[None, None, :], len(self.endoscopes), axis=1)
         simulate(self.state, self.params, path, self.model_dt, 1)
         self._time = float(t)
         self._handle = handle.copy()
@@ -127,7 +143,7 @@ class TipModel:
 
     def _push(self, t: float) -> None:
         self._times.append(float(t))
-        self._tips.append(self.state[0, 2:4].copy())
+        self._tips.append(self.state[:, 2:4].copy())
         while len(self._times) > 2 and self._times[1] < t - self.horizon:
             self._times.popleft()
             self._tips.popleft()
@@ -138,13 +154,25 @@ class TipModel:
         return self.tips_at(np.array([t]))[0]
 
     def tips_at(self, times: np.ndarray) -> np.ndarray:
-        """Modelled tip angles (rad, shape (n, 2)) at the times (s), like :meth:`tip_at`."""
+        """Modelled tip angles (rad, shape (n, 2)) of the member read at the times (s), like :meth:`tip_at`."""
+        return self.all_tips_at(times, self.member)
+
+    def all_tips_at(self, times: np.ndarray, member: int | slice = slice(None)) -> np.ndarray:
+        """Modelled tip angles (rad) of every member, shape (n, members, 2), at the times (s), interpolated
+        between updates and clamped to the oldest / newest; with an integer ``member``, that one's (n, 2)."""
         if not self._times:
             raise LookupError("TipModel: no history before reset")
         ts = np.fromiter(self._times, float, len(self._times))
-        vs = np.array(self._tips)
-        times = np.atleast_1d(np.asarray(times, dtype=float))
-        return np.column_stack([np.interp(times, ts, vs[:, k]) for k in range(2)])
+        times = np.clip(np.atleast_1d(np.asarray(times, dtype=float)), ts[0], ts[-1])
+        hi = np.clip(np.searchsorted(ts, times, side="right"), 1, max(ts.size - 1, 1))
+        lo = hi - 1
+        span = ts[hi] - ts[lo] if ts.size > 1 else np.ones_like(times)
+        w = np.where(span > 0, (times - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)
+        if ts.size == 1:
+            hi = lo
+        vs = np.array([v[member] for v in self._tips])
+        wshape = (-1,) + (1,) * (vs.ndim - 1)
+        return vs[lo] + w.reshape(wshape) * (vs[hi] - vs[lo])
 
 
 def triangle(amplitude: float, rate: float, dt: float = 0.01, cycles: int = 2) -> tuple[np.ndarray, np.ndarray]:
