@@ -335,7 +335,24 @@ class _View:
     sat: np.ndarray
     raw: np.ndarray
     fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
+    zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+    sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
+
+    _LAPLACE = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def noise(self) -> float:
+        """Standard deviation (levels of ``gray``) of the sensor noise around the region's centre:
+        the median absolute response of a second-difference kernel that cancels smooth texture
+        (Immerkaer's), robust to the texture's edges; it reads low rather than high."""
+        if self.sigma is None:
+            h, w = self.gray.shape
+            q = min(h, w) // 4
+            box = self.gray[h // 2 - q:h // 2 + q, w // 2 - q:w // 2 + q].astype(np.float32)
+            resp = cv2.filter2D(box, -1, self._LAPLACE)[1:-1, 1:-1]
+            # for white noise of std s the response has std 6 s; median |N(0, 1)| = 0.6745
+            self.sigma = float(np.median(np.abs(resp))) / (6.0 * 0.6745)
+        return self.sigma
 
     def local(self) -> np.ndarray:
         """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
@@ -379,6 +396,7 @@ class FeatureTracker(Tracker):
         self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
+        self._halo = np.ones((9, 9), np.uint8)  # reach of the target patch's band-pass (sigma 4 px) beyond a highlight
         self._fov: np.ndarray | None = None
         self._hann: np.ndarray | None = None
         self._anchor: _Keyframe | None = None
@@ -465,7 +483,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw, fov)
+        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]))
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -747,6 +765,8 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
+    _NOISE_BAND = 0.05
+
     def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
@@ -767,14 +787,28 @@ class FeatureTracker(Tracker):
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
             # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
-            # fill of glints), which changes with the view and is not the target's appearance
-            return _band(g, 1.0, 4.0), sat == 0
+            # fill of glints), which changes with the view and is not the target's appearance.
+            # Also the patch's brightness (gray levels above black): texture energies are compared
+            # relative to it (contrast), which neither the light's gain nor the region's
+            # normalisation (what else is in the region) changes.
+            # highlights and their halo (the filled blob still leaves a ring in the band-pass)
+            ok = cv2.dilate(sat, self._halo) == 0
+            level = float(np.mean(g[ok])) - v.zero if ok.any() else 0.0
+            return _band(g, 1.0, 4.0), ok, level
 
+        # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
+        # taken out, so strong noise on weak texture does not read as another texture.
+        # _NOISE_BAND: variance of white noise (std 1) after resampling and this band-pass.
         if kf.patch is None:
-            ref, ok_ref = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-            kf.patch = ref, ok_ref, cv2.blur(ref * ref, (9, 9)) + 1.0
-        ref, ok_ref, ref_local = kf.patch
-        cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+            ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+            nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
+            local = cv2.blur(ref * ref, (9, 9))
+            kf.patch = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
+        ref, ok_ref, ref_local, nv_ref, ref_level = kf.patch
+        cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+        gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # this patch in the keyframe's contrast
+        cur = cur * np.float32(gain)
+        nv_cur = self._NOISE_BAND * (gain * view.noise()) ** 2
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
             return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
@@ -782,17 +816,20 @@ class FeatureTracker(Tracker):
         a = a - a.mean()
         b = b - b.mean()
         e_ref = float(np.dot(a, a))
+        e_ref = max(e_ref - nv_ref * a.size, 0.25 * e_ref)
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
             return 1.0, False
         e_cur = float(np.dot(b, b))
+        e_cur = max(e_cur - nv_cur * b.size, 0.25 * e_cur)
         den = math.sqrt(e_cur * e_ref)
-        ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+        ncc = min(1.0, float(np.dot(a, b)) / den) if den > 1e-3 else 0.0
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
         # misregistered or blurred view of the same tissue; so is an even loss of energy that still
         # correlates (weak texture under motion blur), while a covered patch does not correlate.
-        local = cv2.blur(cur * cur, (9, 9))[ok] / ref_local[ok]
+        local = cv2.blur(cur * cur, (9, 9))[ok]
+        local = np.maximum(local - nv_cur, 0.25 * local) / ref_local[ok]
         k = int(0.9 * (len(local) - 1))
         vanished = float(np.mean(local < 0.1 * np.partition(local, k)[k]))
         ratio = e_cur / e_ref
