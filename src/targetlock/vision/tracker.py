@@ -307,11 +307,14 @@ class TrackerSettings:
                                      doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
-    reacquire_every: int = param(4, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th frame")
+    reacquire_every: int = param(8, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th frame")
     reacquire_min_inliers: int = param(12, lo=4, hi=1000, doc="fewest ORB RANSAC inliers to accept a re-acquisition")
     reacquire_ratio: float = param(0.8, lo=0.1, hi=1.0, doc="Lowe ratio for ORB descriptor matches")
     dense_reacquire: bool = param(True, doc="while lost, also search the frame densely for the keyframes' band-passed "
                                             "target window (weak texture, where ORB finds no keypoints)")
+    dense_reacquire_every: int = param(2, lo=1, hi=1000,
+                                       doc="while lost, search the frame densely on every n-th frame (and on the "
+                                           "frame after a candidate was found)")
     dense_reacquire_ncc: float = param(0.35, lo=0.0, hi=1.0,
                                        doc="least normalised correlation of a dense re-acquisition candidate")
     dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
@@ -659,6 +662,7 @@ class FeatureTracker(Tracker):
         if not self._fov.any():
             self.failure = "no image content: the frame is dark (no field of view found)"
             return False
+        self._fov_half = None
         self._pos = p.copy()
         if not self._in_view(p):
             self.failure = "point is outside the endoscope's field of view (or on its edge)"
@@ -917,10 +921,17 @@ class FeatureTracker(Tracker):
         self._steps = self._clock.tick(capture_time)
         if self.lost:
             self._lost_frames += 1
-            res = self._track(frame_bgr, relock=True)
-            if res is None and s.reacquire and self._lost_frames % s.reacquire_every == 1 % s.reacquire_every:
+            k = self._lost_frames
+            # The searches take turns (a lost frame costs about one of them): the whole-frame dense
+            # search every ``dense_reacquire_every`` frames and on the frame after it found a
+            # candidate (which that frame must confirm), ORB every ``reacquire_every`` frames, the
+            # local keyframe re-lock on the first two lost frames and then on every 4th.
+            dense = s.reacquire and s.dense_reacquire and (
+                self._cand is not None or k % s.dense_reacquire_every == 1 % s.dense_reacquire_every)
+            res = self._track(frame_bgr, relock=True) if k <= 2 or k % 4 == 0 else None
+            if res is None and s.reacquire and k % s.reacquire_every == 1 % s.reacquire_every:
                 res = self._reacquire(frame_bgr)
-            if res is None and s.reacquire and s.dense_reacquire:
+            if res is None and dense:
                 res = self._reacquire_dense(frame_bgr)
             if res is not None:
                 self._dense_tpl = self._cand = None
