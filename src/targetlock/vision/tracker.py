@@ -406,7 +406,8 @@ class FeatureTracker(Tracker):
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
-                      "retried": 0, "dense_reacquisitions": 0}
+                      "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
+                      "orb_searches": 0, "dense_searches": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -928,10 +929,16 @@ class FeatureTracker(Tracker):
             # local keyframe re-lock on the first two lost frames and then on every 4th.
             dense = s.reacquire and s.dense_reacquire and (
                 self._cand is not None or k % s.dense_reacquire_every == 1 % s.dense_reacquire_every)
-            res = self._track(frame_bgr, relock=True) if k <= 2 or k % 4 == 0 else None
+            self.stats["lost_frames"] += 1
+            res = None
+            if k <= 2 or k % 4 == 0:
+                self.stats["local_searches"] += 1
+                res = self._track(frame_bgr, relock=True)
             if res is None and s.reacquire and k % s.reacquire_every == 1 % s.reacquire_every:
+                self.stats["orb_searches"] += 1
                 res = self._reacquire(frame_bgr)
             if res is None and dense:
+                self.stats["dense_searches"] += 1
                 res = self._reacquire_dense(frame_bgr)
             if res is not None:
                 self._dense_tpl = self._cand = None
