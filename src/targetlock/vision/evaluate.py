@@ -384,9 +384,11 @@ def markdown_tables(result: dict) -> str:
 
     def row(label: str, who: str, m: dict, bold: bool = False) -> str:
         b = "**" if bold else ""
+        # a reference tracker has no loss-and-search mode: its "lost" frames are not comparable
+        lost = fmt(m["fps_lost"], ".0f") if who == "feature" else "-"
         return (f"| {label} | {who} | {b}{fmt(m['median_px'], '.2f')}{b} | {fmt(m['p95_px'], '.2f')} | "
                 f"{b}{m['tracked_fraction']:.3f}{b} | {b}{m['delta_avg']:.3f}{b} | {m['false_lock_fraction']:.3f} | "
-                f"{fmt(m['fps'], '.0f')} | {fmt(m.get('fps_lost', float('nan')), '.0f')} |")
+                f"{fmt(m['fps'], '.0f')} | {lost} |")
 
     out = ["| texture | tracker | median px | p95 px | tracked | delta_avg | false lock | fps | fps while lost |",
            "|---|---|---|---|---|---|---|---|---|"]
