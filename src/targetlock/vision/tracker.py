@@ -23,8 +23,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
-    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then
-    re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
+    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
+    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
     keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
     filled and their halo left out, a candidate must lead every other place and be found again on
     the next frame where the tissue around it went), or, every few frames, by ORB matching
@@ -770,12 +770,14 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
-    _NOISE_BAND = 0.05
+    _NOISE_BAND = 0.05  # variance of white noise (std 1) after the patch's resampling and band-pass (measured)
 
     def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
-        both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
+        both band-passed patches without highlight pixels (their halo neither), the sensor noise
+        taken out of both energies and the current patch scaled to the keyframe's contrast, or
+        ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
         misregistered, not covered) or the energy is evenly lower (down to ``patch_blur_energy``)
         and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
@@ -793,17 +795,16 @@ class FeatureTracker(Tracker):
                                  borderMode=cv2.BORDER_REPLICATE)
             # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
             # fill of glints), which changes with the view and is not the target's appearance.
-            # Also the patch's brightness (gray levels above black): texture energies are compared
-            # relative to it (contrast), which neither the light's gain nor the region's
-            # normalisation (what else is in the region) changes.
-            # highlights and their halo (the filled blob still leaves a ring in the band-pass)
+            # Highlights and their halo are left out (a filled blob still leaves a ring in the
+            # band-pass). Also the patch's brightness (gray levels above black): texture energies
+            # are compared relative to it (contrast), which neither the light's gain nor the
+            # region's normalisation (what else is in the region) changes.
             ok = cv2.dilate(sat, self._halo) == 0
             level = float(np.mean(g[ok])) - v.zero if ok.any() else 0.0
             return _band(g, 1.0, 4.0), ok, level
 
         # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
         # taken out, so strong noise on weak texture does not read as another texture.
-        # _NOISE_BAND: variance of white noise (std 1) after resampling and this band-pass.
         if kf.patch is None:
             ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
             nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
