@@ -3,6 +3,7 @@
 
     python scripts/make_docs.py model     # hysteresis plots + parameter table (docs/model.md inputs)
     python scripts/make_docs.py results   # docs/results.md: the report's scenarios, every controller
+    python scripts/make_docs.py vision    # docs/vision.md: the vision-eval tables (seed 0), between markers
     python scripts/make_docs.py all
 """
 from __future__ import annotations
@@ -48,9 +49,31 @@ def results() -> None:
     write_results_page(DOCS / "results.md", IMG)
 
 
+VISION_BEGIN = "<!-- make_docs vision: begin -->"
+VISION_END = "<!-- make_docs vision: end -->"
+
+
+def vision() -> None:
+    """Run ``targetlock vision-eval``'s evaluation (default settings, seed 0) and write its tables
+    into docs/vision.md between the markers (the rest of the page is left as it is)."""
+    from targetlock.vision.evaluate import evaluate, markdown_tables
+
+    page = DOCS / "vision.md"
+    text = page.read_text()
+    if VISION_BEGIN not in text or VISION_END not in text:
+        raise SystemExit(f"{page}: markers {VISION_BEGIN!r} ... {VISION_END!r} not found")
+    res = evaluate(seed=0, progress=print)
+    head, rest = text.split(VISION_BEGIN, 1)
+    _, tail = rest.split(VISION_END, 1)
+    page.write_text(head + VISION_BEGIN + "\n" + markdown_tables(res) + VISION_END + tail)
+    print("wrote", page)
+
+
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "all"
     if what in ("model", "all"):
         model()
     if what in ("results", "all"):
         results()
+    if what in ("vision", "all"):
+        vision()

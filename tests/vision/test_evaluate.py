@@ -6,6 +6,7 @@ import pytest
 
 from targetlock.config import ConfigError, validate
 from targetlock.vision import EvalSettings, Frame, TrackResult, evaluate, render_sequence, score
+from targetlock.vision.evaluate import markdown_tables
 
 
 def _frame(truth, visible=True):
@@ -95,3 +96,8 @@ def test_real_photograph_sequences_with_reference_trackers_in_the_same_run():
         assert set(ref["sequences"]) == {"slow", "retina/slow"}                # per sequence, too
         assert ref["sequences"]["retina/slow"]["frames"] == out["sequences"]["retina/slow"]["frames"]
         assert out["overall"]["delta_avg"] >= ref["overall"]["delta_avg"]
+    md = markdown_tables(out)   # docs/vision.md's tables
+    lines = md.splitlines()
+    assert sum(ln.startswith("| retina/slow |") for ln in lines) == 1
+    assert sum(ln.startswith("| retina | ") for ln in lines) == 3          # ours, MIL, plain LK
+    assert "of 2 sequences (seed 0)" in md

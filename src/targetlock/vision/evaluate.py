@@ -38,7 +38,11 @@ Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
   a miss at every threshold). ``false_lock_fraction``: valid estimates farther than the threshold
   / all frames. ``fps``: tracker frames per second on one core, timing only ``update`` calls;
   ``fps_locked``: the same over the frames that arrive while the target is locked (the normal,
-  region-of-interest case), leaving out whole-frame re-acquisition while lost.
+  region-of-interest case), leaving out whole-frame re-acquisition while lost; ``fps_lost``: over
+  the frames that arrive while it is lost (the whole-frame searches).
+
+:func:`markdown_tables` writes a result as the tables of ``docs/vision.md``
+(``scripts/make_docs.py vision``).
 """
 from __future__ import annotations
 
@@ -59,7 +63,7 @@ from .reference import make_reference, reference_trackers
 from .texture import PHOTOS, photo_texture
 from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings
 
-__all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon"]
+__all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon", "markdown_tables"]
 
 SEQUENCES = ("slow", "fast", "tip", "blur", "specular", "lighting", "noise", "occlusion", "leave", "scale",
              "rotation", "folds")
@@ -250,7 +254,8 @@ def _make(cfg: EvalSettings, tracker_settings, cam: CameraParams) -> Tracker:
 
 
 def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: int, threshold_px: float) -> tuple:
-    """Select on frame 0, update on the rest (timed). Returns (metrics, results, t_all, t_locked, n_locked)."""
+    """Select on frame 0, update on the rest (timed). Returns (metrics, results, t_all, t_locked,
+    n_locked); the metrics' ``fps_lost`` times the frames that arrive while the target is lost."""
     ok = tracker.select(frames[0].image, frames[0].truth_px, window_px)
     results = []
     dt = dt_lock = 0.0
@@ -267,6 +272,8 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
     m = score(frames[1:], results, threshold_px)
     m["fps"] = (len(results) / dt) if dt > 0 else float("inf")
     m["fps_locked"] = (n_lock / dt_lock) if dt_lock > 0 else float("nan")
+    n_lost = len(results) - n_lock
+    m["fps_lost"] = n_lost / (dt - dt_lock) if n_lost and dt > dt_lock else float("nan")
     m["selected"] = bool(ok)
     m["selection_failure"] = tracker.failure
     return m, results, dt, dt_lock, n_lock
@@ -342,6 +349,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
         t, t_lock, n_lock = sum(a[2] for a in accs), sum(a[3] for a in accs), sum(a[4] for a in accs)
         m["fps"] = len(frames) / t if t > 0 else float("inf")
         m["fps_locked"] = n_lock / t_lock if t_lock > 0 else float("nan")
+        n_lost = len(frames) - n_lock
+        m["fps_lost"] = n_lost / (t - t_lock) if n_lost and t > t_lock else float("nan")
         m["selection_failures"] = int(sum(a[5] for a in accs))
         return m
 
@@ -361,3 +370,47 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
             "settings": cfg_d, "seed": int(seed),
             "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
                      "the field of view): correct if not valid, or valid and error <= threshold"}
+
+
+def markdown_tables(result: dict) -> str:
+    """The tables of ``docs/vision.md`` from an :func:`evaluate` result: per texture (the tracker and
+    each reference; the pooled row), then per sequence with the references' delta_avg (bold: at
+    least as high as every reference's on that sequence)."""
+    refs = list(result["references"])
+    names = {"mil": "MIL", "lk": "plain LK"}
+
+    def fmt(v: float, spec: str) -> str:
+        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+    def row(label: str, who: str, m: dict, bold: bool = False) -> str:
+        b = "**" if bold else ""
+        # a reference tracker has no loss-and-search mode: its "lost" frames are not comparable
+        lost = fmt(m["fps_lost"], ".0f") if who == "feature" else "-"
+        return (f"| {label} | {who} | {b}{fmt(m['median_px'], '.2f')}{b} | {fmt(m['p95_px'], '.2f')} | "
+                f"{b}{m['tracked_fraction']:.3f}{b} | {b}{m['delta_avg']:.3f}{b} | {m['false_lock_fraction']:.3f} | "
+                f"{fmt(m['fps'], '.0f')} | {lost} |")
+
+    out = ["| texture | tracker | median px | p95 px | tracked | delta_avg | false lock | fps | fps while lost |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for c, m in result["content"].items():
+        out.append(row(c, "feature", m))
+        out += [row(c, names.get(w, w), result["references"][w]["content"][c]) for w in refs]
+    out.append(row("all", "feature", result["overall"], bold=True))
+    out += [row("all", names.get(w, w), result["references"][w]["overall"]) for w in refs]
+    seq = ["", "| sequence | tracked | false lock | median px | delta_avg | "
+           + " | ".join(f"{names.get(w, w)} delta_avg" for w in refs) + " | fps | fps while lost |",
+           "|---|---|---|---|---|" + "---|" * len(refs) + "---|---|"]
+    ahead = 0
+    for key, m in result["sequences"].items():
+        others = [result["references"][w]["sequences"][key]["delta_avg"] for w in refs]
+        lead = all(m["delta_avg"] >= o for o in others)
+        ahead += lead
+        b = "**" if lead else ""
+        seq.append(f"| {key} | {m['tracked_fraction']:.3f} | {m['false_lock_fraction']:.3f} | "
+                   f"{fmt(m['median_px'], '.2f')} | {b}{m['delta_avg']:.3f}{b} | "
+                   + " | ".join(f"{o:.3f}" for o in others)
+                   + f" | {fmt(m['fps'], '.0f')} | {fmt(m['fps_lost'], '.0f')} |")
+    seq.append("")
+    seq.append(f"delta_avg at least as high as every reference's on {ahead} of {len(result['sequences'])} sequences "
+               f"(seed {result['seed']}).")
+    return "\n".join(out + seq) + "\n"

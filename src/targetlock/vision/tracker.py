@@ -23,8 +23,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
-    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then
-    re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
+    After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
+    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
     keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
     filled and their halo left out, a candidate must lead every other place and be found again on
     the next frame where the tissue around it went), or, every few frames, by ORB matching
@@ -307,11 +307,14 @@ class TrackerSettings:
                                      doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
-    reacquire_every: int = param(4, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th frame")
+    reacquire_every: int = param(8, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th frame")
     reacquire_min_inliers: int = param(12, lo=4, hi=1000, doc="fewest ORB RANSAC inliers to accept a re-acquisition")
     reacquire_ratio: float = param(0.8, lo=0.1, hi=1.0, doc="Lowe ratio for ORB descriptor matches")
     dense_reacquire: bool = param(True, doc="while lost, also search the frame densely for the keyframes' band-passed "
                                             "target window (weak texture, where ORB finds no keypoints)")
+    dense_reacquire_every: int = param(2, lo=1, hi=1000,
+                                       doc="while lost, search the frame densely on every n-th frame (and on the "
+                                           "frame after a candidate was found)")
     dense_reacquire_ncc: float = param(0.35, lo=0.0, hi=1.0,
                                        doc="least normalised correlation of a dense re-acquisition candidate")
     dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
@@ -335,7 +338,24 @@ class _View:
     sat: np.ndarray
     raw: np.ndarray
     fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
+    zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+    sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
+
+    _LAPLACE = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def noise(self) -> float:
+        """Standard deviation (levels of ``gray``) of the sensor noise around the region's centre:
+        the median absolute response of a second-difference kernel that cancels smooth texture
+        (Immerkaer's), robust to the texture's edges; it reads low rather than high."""
+        if self.sigma is None:
+            h, w = self.gray.shape
+            q = min(h, w) // 4
+            box = self.gray[h // 2 - q:h // 2 + q, w // 2 - q:w // 2 + q].astype(np.float32)
+            resp = cv2.filter2D(box, -1, self._LAPLACE)[1:-1, 1:-1]
+            # for white noise of std s the response has std 6 s; median |N(0, 1)| = 0.6745
+            self.sigma = float(np.median(np.abs(resp[::2, ::2]))) / (6.0 * 0.6745)  # every 4th: enough samples
+        return self.sigma
 
     def local(self) -> np.ndarray:
         """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
@@ -379,13 +399,15 @@ class FeatureTracker(Tracker):
         self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
+        self._halo = np.ones((9, 9), np.uint8)  # reach of the target patch's band-pass (sigma 4 px) beyond a highlight
         self._fov: np.ndarray | None = None
         self._hann: np.ndarray | None = None
         self._anchor: _Keyframe | None = None
         self.lost = True
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
-                      "retried": 0, "dense_reacquisitions": 0}
+                      "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
+                      "orb_searches": 0, "dense_searches": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -465,7 +487,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw, fov)
+        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]))
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -641,6 +663,7 @@ class FeatureTracker(Tracker):
         if not self._fov.any():
             self.failure = "no image content: the frame is dark (no field of view found)"
             return False
+        self._fov_half = None
         self._pos = p.copy()
         if not self._in_view(p):
             self.failure = "point is outside the endoscope's field of view (or on its edge)"
@@ -747,10 +770,14 @@ class FeatureTracker(Tracker):
             return None
         return np.array([dx, dy])
 
+    _NOISE_BAND = 0.05  # variance of white noise (std 1) after the patch's resampling and band-pass (measured)
+
     def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
-        both band-passed patches without highlight pixels, or ``patch_keyframe_ncc`` when their
+        both band-passed patches without highlight pixels (their halo neither), the sensor noise
+        taken out of both energies and the current patch scaled to the keyframe's contrast, or
+        ``patch_keyframe_ncc`` when their
         texture energies agree within ``patch_energy_ratio`` (the same tissue, slightly blurred or
         misregistered, not covered) or the energy is evenly lower (down to ``patch_blur_energy``)
         and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
@@ -767,14 +794,27 @@ class FeatureTracker(Tracker):
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
             # band-pass: noise smoothed away, and so is the slow shading (light fall-off, the smooth
-            # fill of glints), which changes with the view and is not the target's appearance
-            return _band(g, 1.0, 4.0), sat == 0
+            # fill of glints), which changes with the view and is not the target's appearance.
+            # Highlights and their halo are left out (a filled blob still leaves a ring in the
+            # band-pass). Also the patch's brightness (gray levels above black): texture energies
+            # are compared relative to it (contrast), which neither the light's gain nor the
+            # region's normalisation (what else is in the region) changes.
+            ok = cv2.dilate(sat, self._halo) == 0
+            level = float(np.mean(g[ok])) - v.zero if ok.any() else 0.0
+            return _band(g, 1.0, 4.0), ok, level
 
+        # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
+        # taken out, so strong noise on weak texture does not read as another texture.
         if kf.patch is None:
-            ref, ok_ref = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-            kf.patch = ref, ok_ref, cv2.blur(ref * ref, (9, 9)) + 1.0
-        ref, ok_ref, ref_local = kf.patch
-        cur, ok_cur = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+            ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
+            nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
+            local = cv2.blur(ref * ref, (9, 9))
+            kf.patch = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
+        ref, ok_ref, ref_local, nv_ref, ref_level = kf.patch
+        cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
+        gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # this patch in the keyframe's contrast
+        cur = cur * np.float32(gain)
+        nv_cur = self._NOISE_BAND * (gain * view.noise()) ** 2
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
             return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
@@ -782,17 +822,20 @@ class FeatureTracker(Tracker):
         a = a - a.mean()
         b = b - b.mean()
         e_ref = float(np.dot(a, a))
+        e_ref = max(e_ref - nv_ref * a.size, 0.25 * e_ref)
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
             return 1.0, False
         e_cur = float(np.dot(b, b))
+        e_cur = max(e_cur - nv_cur * b.size, 0.25 * e_cur)
         den = math.sqrt(e_cur * e_ref)
-        ncc = float(np.dot(a, b)) / den if den > 1e-3 else 0.0
+        ncc = min(1.0, float(np.dot(a, b)) / den) if den > 1e-3 else 0.0
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
         # misregistered or blurred view of the same tissue; so is an even loss of energy that still
         # correlates (weak texture under motion blur), while a covered patch does not correlate.
-        local = cv2.blur(cur * cur, (9, 9))[ok] / ref_local[ok]
+        local = cv2.blur(cur * cur, (9, 9))[ok]
+        local = np.maximum(local - nv_cur, 0.25 * local) / ref_local[ok]
         k = int(0.9 * (len(local) - 1))
         vanished = float(np.mean(local < 0.1 * np.partition(local, k)[k]))
         ratio = e_cur / e_ref
@@ -880,10 +923,23 @@ class FeatureTracker(Tracker):
         self._steps = self._clock.tick(capture_time)
         if self.lost:
             self._lost_frames += 1
-            res = self._track(frame_bgr, relock=True)
-            if res is None and s.reacquire and self._lost_frames % s.reacquire_every == 1 % s.reacquire_every:
+            k = self._lost_frames
+            # The searches take turns (a lost frame costs about one of them): the whole-frame dense
+            # search every ``dense_reacquire_every`` frames and on the frame after it found a
+            # candidate (which that frame must confirm), ORB every ``reacquire_every`` frames, the
+            # local keyframe re-lock on the first two lost frames and then on every 4th.
+            dense = s.reacquire and s.dense_reacquire and (
+                self._cand is not None or k % s.dense_reacquire_every == 1 % s.dense_reacquire_every)
+            self.stats["lost_frames"] += 1
+            res = None
+            if k <= 2 or k % 4 == 0:
+                self.stats["local_searches"] += 1
+                res = self._track(frame_bgr, relock=True)
+            if res is None and s.reacquire and k % s.reacquire_every == 1 % s.reacquire_every:
+                self.stats["orb_searches"] += 1
                 res = self._reacquire(frame_bgr)
-            if res is None and s.reacquire and s.dense_reacquire:
+            if res is None and dense:
+                self.stats["dense_searches"] += 1
                 res = self._reacquire_dense(frame_bgr)
             if res is not None:
                 self._dense_tpl = self._cand = None
