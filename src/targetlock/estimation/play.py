@@ -67,10 +67,11 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
     dp = high_pass(np.diff(p, axis=1), span, 1)       # (k, n-1, 2)
     w = np.ones(dp.shape[:2])
     for _ in range(2):
-        g = np.einsum("kn,kni,knj->kij", w, dp, dp)
+        wdp = np.transpose(dp * w[..., None], (0, 2, 1))          # (k, 2, n-1)
+        g = wdp @ dp
         lam = ridge * 0.5 * np.trace(g, axis1=1, axis2=2)[:, None, None] + 1e-12
         g = g + lam * np.eye(2)
-        b = np.einsum("kn,kni,nj->kij", w, dp, dx) + lam * np.asarray(prior, dtype=float).T   # (k, 2 [p], 2 [x])
+        b = wdp @ dx + lam * np.asarray(prior, dtype=float).T   # (k, 2 [p], 2 [x])
         jt = np.linalg.solve(g, b)                    # J transposed per candidate
         r = dx[None] - dp @ jt                        # (k, n-1, 2)
         rn = np.sqrt(np.sum(r * r, axis=-1))

@@ -66,6 +66,7 @@ class TipModel:
         self.horizon = float(horizon)
         self._times: deque[float] = deque()
         self._tips: deque[np.ndarray] = deque()
+        self._stacked: tuple[np.ndarray, np.ndarray] | None = None     # the history as arrays, until it changes
         self._time = math.nan
         self._handle = np.zeros(2)
 
@@ -119,6 +120,7 @@ class TipModel:
         self._handle = handle.copy()
         self._times.clear()
         self._tips.clear()
+        self._stacked = None
         self._push(t)
 
     def update(self, t: float, handle: np.ndarray) -> np.ndarray:
@@ -142,6 +144,7 @@ class TipModel:
         return self.tip
 
     def _push(self, t: float) -> None:
+        self._stacked = None
         self._times.append(float(t))
         self._tips.append(self.state[:, 2:4].copy())
         while len(self._times) > 2 and self._times[1] < t - self.horizon:
@@ -162,7 +165,9 @@ class TipModel:
         between updates and clamped to the oldest / newest; with an integer ``member``, that one's (n, 2)."""
         if not self._times:
             raise LookupError("TipModel: no history before reset")
-        ts = np.fromiter(self._times, float, len(self._times))
+        if self._stacked is None:
+            self._stacked = (np.fromiter(self._times, float, len(self._times)), np.array(self._tips))
+        ts, history = self._stacked
         times = np.clip(np.atleast_1d(np.asarray(times, dtype=float)), ts[0], ts[-1])
         hi = np.clip(np.searchsorted(ts, times, side="right"), 1, max(ts.size - 1, 1))
         lo = hi - 1
@@ -170,7 +175,7 @@ class TipModel:
         w = np.where(span > 0, (times - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)
         if ts.size == 1:
             hi = lo
-        vs = np.array([v[member] for v in self._tips])
+        vs = history[:, member]
         wshape = (-1,) + (1,) * (vs.ndim - 1)
         return vs[lo] + w.reshape(wshape) * (vs[hi] - vs[lo])
 
