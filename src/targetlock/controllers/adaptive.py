@@ -18,17 +18,15 @@ J instead of assuming it, and steers with it:
   ~6 s (each at its best delay) is compared frame by frame with the one steering, and replaces it
   when it is significantly better; J's columns are carried over (within ×0.8–1.25). (Handing the
   true endoscope to this controller was worth more than the true latency or depth: median 30.7/37.7
-  -> 25.5/25.6 px on robustness seeds 0/204, true latency only 30.4/36.2; the bank gets part of it:
-  29.9/32.4.) The chosen candidate's best delay is reported (``delay_s``: the error of the assumed
-  latency); the prediction trusts the frames' stamps (steering with that delay was neutral on the
-  benchmark, and the cross-correlation :class:`~targetlock.estimation.DelayEstimator` made the
-  report's 30 cm path worse, 57 -> 83 px).
+  -> 25.5/25.6 px on robustness seeds 0/204; the bank gets part of that, see the docs.)
 * **Estimation** (package :mod:`targetlock.estimation`): J by bounded RLS on frame-to-frame increments
-  of ``e`` (at each frame's capture time) and the image, starting from the nominal prior.
+  of ``e`` (at each frame's capture time) and the image, starting from the nominal prior; the
+  delay between the frames' time stamps and the image motion (a latency nobody measured: the rig
+  stamps frames with the assumed latency).
 * **Latency-compensated visual servo** (image-space Smith predictor): each frame, the offset the
   camera will show once the motor motion since the frame's capture is seen,
   ``x_now = x + J·(e_now − e_capture)``, and the motor
-  command removes ``adaptive_servo_gain`` of it: ``m + g·(−J⁻¹·x_now)``. With the right J and stamps
+  command removes ``adaptive_servo_gain`` of it: ``m + g·(−J⁻¹·x_now)``. With the right J and delay
   the latency drops out of the loop, so the gain no longer has to be low for it; a still target is
   reached without overshoot at any distance, and motor motion that only takes up the cables is
   pushed through rather than counted as done.
@@ -56,7 +54,7 @@ import math
 
 import numpy as np
 
-from ..estimation import JacobianEstimator, ScopeSelector, TipModel, prior_jacobian, scope_candidates
+from ..estimation import DelayEstimator, JacobianEstimator, ScopeSelector, TipModel, prior_jacobian, scope_candidates
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
@@ -92,6 +90,7 @@ class AdaptiveController(Controller):
         ceiling = 1.5 * float(np.max(np.linalg.svd(near, compute_uv=False)))
         self.cautious_scale = float(math.sqrt(abs(np.linalg.det(self._prior(motor, min(cfg.adaptive_cautious_depth, k.depth))))))
         self.jacobian = JacobianEstimator(prior, sv_min=floor, sv_max=ceiling)
+        self.delay = DelayEstimator(initial=0.0)
         self.trust = 0.0
         self.caution = 1.0
         self.caution_from = t
@@ -122,7 +121,7 @@ class AdaptiveController(Controller):
         c = float(obs.capture_time)
         est = self.jacobian
         tp, xp = self.prev if self.prev is not None else (c, x)
-        e_c, e_p = self._effective_at(np.array([c, tp]))
+        e_c, e_p = self._effective_at(np.array([c, tp]) - self.delay.delay)
         dm = e_c - e_p
         # Slow motion (tracking a drifting target) moves the motor too little between two frames to
         # say anything about J: the pair then spans several frames, up to ``pair_span`` s.
@@ -138,13 +137,14 @@ class AdaptiveController(Controller):
                 elif est.rejected > rejected:
                     self.mismatch = 0.8 * self.mismatch + 0.2 * 3.0    # an outlier: distrust a while
             self.prev = (c, x)
+        self.delay.add(c, x, self._effective_at, est.j)
         scales = self.selector.add(c, x, self.tip_model.all_tips_at(c - self.selector.delays) / self.cfg.tip_gain, est.j)
         if scales is not None:
             # Another candidate scope explains the image significantly better: steer with its motion.
             self.tip_model.member = self.selector.best
             est.rescale(scales)
             self.effective = self.tip_model.tip / self.cfg.tip_gain
-            e_c = self._effective_at(np.array([c]))[0]
+            e_c = self._effective_at(np.array([c - self.delay.delay]))[0]
         # Trust in the model: 1 while its predictions match (mismatch <= 0.3), 0 beyond 0.8.
         self.trust = float(np.clip((0.8 - self.mismatch) / 0.5, 0.0, 1.0)) if est.updates >= 5 else 0.0
         return self._servo(x, motor, e_c, t)
@@ -183,11 +183,10 @@ class AdaptiveController(Controller):
 
     def signals(self) -> dict[str, float]:
         """The estimated image Jacobian's direct terms (px per handle rad), the supervisor's trust
-        [0, 1], the caution [0, 1] and the estimated stamp-to-image delay (s; NaN until the scope
-        bank has judged a window)."""
+        [0, 1], the caution [0, 1] and the estimated stamp-to-image delay (s)."""
         if not self.engaged:
             return {"jacobian_x_px_per_rad": math.nan, "jacobian_y_px_per_rad": math.nan, "trust": math.nan,
                     "caution": math.nan, "delay_s": math.nan}
         j = self.jacobian.j
         return {"jacobian_x_px_per_rad": abs(float(j[0, 0])), "jacobian_y_px_per_rad": abs(float(j[1, 1])),
-                "trust": self.trust, "caution": self.caution, "delay_s": self.selector.delay}
+                "trust": self.trust, "caution": self.caution, "delay_s": self.delay.delay}

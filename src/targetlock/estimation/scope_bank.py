@@ -93,9 +93,6 @@ class ScopeSelector:
         self.frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=window)
         self.cost = np.full(members, np.nan)
         """Roughness of each candidate at its best delay in the last window judged (px; NaN before)."""
-        self.delay = math.nan
-        """s: the delay of the image behind the stamps at which the candidate read fitted best in the last
-        window (NaN before): an estimate of the error of the assumed video latency."""
         self.significance = 0.0
         """Paired t statistic of the last window's best candidate over the one read."""
         self.switches = 0
@@ -125,7 +122,6 @@ class ScopeSelector:
         at = np.argmin(cost, axis=0)                   # each candidate's best delay
         self.cost = cost[at, np.arange(m)]
         cur, new = self.best, int(np.argmin(self.cost))
-        self.delay = float(self.delays[at[cur]])
         self.significance = _paired_t(rn[at[cur], cur], rn[at[new], new], kept[at[new], new]) if new != cur else 0.0
         if self.significance < self.min_t:
             self._pending = (-1, 0)
