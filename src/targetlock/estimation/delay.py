@@ -56,17 +56,17 @@ class DelayEstimator:
         x = np.array([f[1] for f in self.frames])
         dx = np.diff(x, axis=0).ravel()
         dx = dx - dx.mean()
+        # The motor at every frame's time minus every candidate delay, read in one call.
+        m = np.asarray(motor_at((t[None, :] - self.candidates[:, None]).ravel()), dtype=float)
+        dp = (np.diff(m.reshape(self.candidates.size, t.size, 2), axis=1) @ jacobian.T).reshape(self.candidates.size, -1)
+        dp = dp - dp.mean(axis=1, keepdims=True)
+        den = np.linalg.norm(dx) * np.linalg.norm(dp, axis=1)
+        ok = den > 1e-9
         best, best_c = self.delay, -1.0
-        for d in self.candidates:
-            m = motor_at(t - d)
-            dp = (np.diff(m, axis=0) @ jacobian.T).ravel()
-            dp = dp - dp.mean()
-            den = np.linalg.norm(dx) * np.linalg.norm(dp)
-            if den <= 1e-9:
-                continue
-            c = float(dx @ dp / den)
-            if c > best_c:
-                best, best_c = float(d), c
+        if ok.any():
+            c = np.where(ok, dp @ dx / np.where(ok, den, 1.0), -np.inf)
+            i = int(np.argmax(c))
+            best, best_c = float(self.candidates[i]), float(c[i])
         self.correlation = best_c
         if best_c >= self.min_correlation:
             self.delay = float(np.clip(0.5 * self.delay + 0.5 * best, self.lo, self.hi))
