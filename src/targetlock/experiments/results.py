@@ -200,8 +200,12 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   over and every result says which it was. In the report's scenarios the nominal values are the plant's.
 * **`adaptive`** (ours) assumes almost nothing: it estimates the image Jacobian (distance, focal length,
   handle gain) and the delay behind the frames' time stamps while it runs, takes its own tip motion
-  from an online copy of the endoscope model with the assumed parameters (so taking up the cables'
-  slack and turning the friction around are not mistaken for tip motion), and steers as a
+  from an online copy of the endoscope model (so taking up the cables' slack and turning the friction
+  around are not mistaken for tip motion) — 32 candidate scopes around the assumed one run side by
+  side, and it steers with the one whose motion leaves the smoothest image residual, switching when
+  another is significantly better (the endoscope's parameters are the knowledge that matters most:
+  handed the true endoscope alone, its median on robustness seeds 0/204 drops from 31/38 to 26/26 px,
+  the true latency or depth alone gives 30–36 px) — and steers as a
   latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the
   camera will show once the motion already under way is seen (a Smith predictor in image space), so
   the latency no longer forces a low gain. After engaging, until a supervisor finds the model
@@ -211,7 +215,8 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   report's paths it is the best controller that does not know the plant. Its costs: a slower first
   second far away (the caution); a larger lag than PI on a slowly drifting target at 10–15 cm (the
   predictor sees the target's motion one latency late; extrapolating the target's own motion was
-  tried and did not pay for its noise); and on a scope with much more slack than assumed, a hunt
-  across the unmodelled dead band (the nominal model says the tip moves before it does). On a
+  tried and did not pay for its noise); and at 1–2 cm on a scope far from the assumed one, a hunt
+  across the dead band until the scope bank has found a better candidate (it needs 4 s or more of
+  own motion to tell them apart). On a
   wrongly stamped latency it depends on the delay estimate.
 """
