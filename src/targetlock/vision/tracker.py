@@ -673,16 +673,30 @@ class FeatureTracker(Tracker):
         best = 0
         attempts = [(1.0, None, True), (1.5, None, True), (2.0, None, True),
                     (2.0, 0.1 * s.feature_quality, True), (2.0, 0.1 * s.feature_quality, False)]
+        # Barely enough corners (fewer than 1.5 x min_inliers: a smooth or dark target) leave no
+        # margin for the ones lost to motion blur or noise on the next frames: a larger window
+        # (same quality, same masking) is then taken if it has that margin.
+        margin = math.ceil(1.5 * s.min_inliers)
+        found = None
         for grow, quality, masked in attempts:
-            self._setup_window(frame_bgr, min(2048.0, grow * float(window_px)))
+            if found is not None and (quality is not None or not masked):
+                break
+            window = min(2048.0, grow * float(window_px))
+            self._setup_window(frame_bgr, window)
             view = self._crop(frame_bgr, p)
             pts = self._features(view, p, 0.5 * self._window, quality, masked)
             best = max(best, len(pts))
-            if len(pts) >= s.min_inliers:
-                kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
-                self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
-                                  "highlights_masked": masked, "features": len(pts)}
+            if len(pts) >= s.min_inliers and (found is None or len(pts) >= margin):
+                found = (window, quality, masked, view, pts)
+            if found is not None and len(found[4]) >= margin:
                 break
+        if found is not None:
+            window, quality, masked, view, pts = found
+            if window != self._window:
+                self._setup_window(frame_bgr, window)
+            kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
+            self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
+                              "highlights_masked": masked, "features": len(pts)}
         else:
             sat = float(view.sat.mean())
             why = (f"{sat:.0%} of the region is saturated or glare" if sat > 0.3 else
