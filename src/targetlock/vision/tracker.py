@@ -24,7 +24,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
-    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
+    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole
+    frame (the field of view's bounding box) by a **dense search** of the
     keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
     filled and their halo left out, a candidate must lead every other place and be found again on
     the next frame where the tissue around it went), or, every few frames, by ORB matching
