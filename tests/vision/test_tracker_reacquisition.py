@@ -93,3 +93,23 @@ def test_a_glint_that_stays_put_is_not_locked_onto(cam):
             assert np.hypot(*(res_i.position_px - f.truth_px)) < 8.0
     assert not any(r_.valid for r_, f in zip(res, frames[1:]) if not f.visible)
     assert all(r_.lost for r_ in res[-10:])
+
+
+def test_a_target_that_returns_near_the_edge_of_the_round_view_is_reacquired_there(cam):
+    """The whole-frame searches look only at the round field of view's bounding box (the black
+    corners of the frame hold nothing to find): a textured target that was covered and returns
+    ~200 px up and left, towards the edge of the view, is re-acquired by ORB within a few frames of
+    being uncovered, at its true place in frame coordinates, and nothing wrong is reported."""
+    r = Renderer(cam, RenderSettings(fresh_noise=True), PlanarTarget.mucosa(seed=3), seed=5)
+    here, there = (0.0, 0.0, 0.05), (-0.025, -0.025, 0.05)
+    c0 = r.render(np.eye(4), _pose(here), point_m=P_SEL).truth_px
+    frames = [r.render(np.eye(4), _pose(here if i < 4 else there), point_m=P_SEL,
+                       occluders=_cover(c0) if 2 <= i < 12 else ()) for i in range(20)]
+    assert np.hypot(*(frames[-1].truth_px - frames[0].truth_px)) > 150 and frames[-1].visible
+    tr = FeatureTracker()
+    res = _run(tr, frames)
+    assert any(r_.lost for r_ in res[:10])
+    errs = np.array([np.hypot(*(r_.position_px - f.truth_px)) if r_.valid else np.inf for r_, f in zip(res, frames[1:])])
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)
+    assert np.all(errs[-4:] < 2.0), errs.round(1)
+    assert tr.stats["reacquisitions"] >= 1

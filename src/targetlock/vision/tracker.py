@@ -24,7 +24,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
-    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole frame by a **dense search** of the
+    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole
+    frame (the field of view's bounding box) by a **dense search** of the
     keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
     filled and their halo left out, a candidate must lead every other place and be found again on
     the next frame where the tissue around it went), or, every few frames, by ORB matching
@@ -416,6 +417,7 @@ class FeatureTracker(Tracker):
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
+        self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -664,6 +666,7 @@ class FeatureTracker(Tracker):
             self.failure = "no image content: the frame is dark (no field of view found)"
             return False
         self._fov_half = None
+        self._box = None
         self._pos = p.copy()
         if not self._in_view(p):
             self.failure = "point is outside the endoscope's field of view (or on its edge)"
@@ -671,16 +674,30 @@ class FeatureTracker(Tracker):
         best = 0
         attempts = [(1.0, None, True), (1.5, None, True), (2.0, None, True),
                     (2.0, 0.1 * s.feature_quality, True), (2.0, 0.1 * s.feature_quality, False)]
+        # Barely enough corners (fewer than 1.5 x min_inliers: a smooth or dark target) leave no
+        # margin for the ones lost to motion blur or noise on the next frames: a larger window
+        # (same quality, same masking) is then taken if it has that margin.
+        margin = math.ceil(1.5 * s.min_inliers)
+        found = None
         for grow, quality, masked in attempts:
-            self._setup_window(frame_bgr, min(2048.0, grow * float(window_px)))
+            if found is not None and (quality is not None or not masked):
+                break
+            window = min(2048.0, grow * float(window_px))
+            self._setup_window(frame_bgr, window)
             view = self._crop(frame_bgr, p)
             pts = self._features(view, p, 0.5 * self._window, quality, masked)
             best = max(best, len(pts))
-            if len(pts) >= s.min_inliers:
-                kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
-                self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
-                                  "highlights_masked": masked, "features": len(pts)}
+            if len(pts) >= s.min_inliers and (found is None or len(pts) >= margin):
+                found = (window, quality, masked, view, pts)
+            if found is not None and len(found[4]) >= margin:
                 break
+        if found is not None:
+            window, quality, masked, view, pts = found
+            if window != self._window:
+                self._setup_window(frame_bgr, window)
+            kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
+            self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
+                              "highlights_masked": masked, "features": len(pts)}
         else:
             sat = float(view.sat.mean())
             why = (f"{sat:.0%} of the region is saturated or glare" if sat > 0.3 else
@@ -1147,11 +1164,12 @@ class FeatureTracker(Tracker):
                if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
         if not kfs:
             return None
-        gray, mask = self._orb_prep(frame)
+        box = self._search_box()
+        gray, mask = self._orb_prep(frame, box)
         kps, desc = self._orb.detectAndCompute(gray, mask)
         if desc is None or len(kps) < s.reacquire_min_inliers:
             return None
-        pts = np.array([k.pt for k in kps], np.float32)
+        pts = np.array([k.pt for k in kps], np.float32) + np.float32(box[:2])
         owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
         query = np.concatenate([k.orb_desc for k in kfs])
         qpts = np.concatenate([k.orb_pts for k in kfs])
@@ -1223,19 +1241,35 @@ class FeatureTracker(Tracker):
         tpl[~ok] = 0.0
         return tpl, float(np.dot(tpl.ravel(), tpl.ravel())) / n_ok
 
-    def _dense_image(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The whole frame at half resolution, normalised, highlights filled, band-passed (zero near
-        highlights and the field of view's edge), and its field-of-view mask."""
-        h, w = frame.shape[:2]
+    def _search_box(self) -> tuple[int, int, int, int]:
+        """(x0, y0, x1, y1) px, even: the part of the frame the whole-frame searches look at, the
+        field of view's bounding box with a margin that holds a template window and the band-pass's
+        and ORB's reach beyond it (outside the round view there is nothing to find; a round view
+        in a 4:3 frame leaves about a quarter of it black)."""
+        if self._box is None:
+            h, w = self._fov.shape
+            x, y, bw, bh = cv2.boundingRect(self._fov)
+            m = int(0.5 * self._window) + 8  # the window (centred in the view), ORB's 31 px edge
+            x0, y0 = max(0, x - m) // 2 * 2, max(0, y - m) // 2 * 2
+            x1, y1 = min(w, x + bw + m), min(h, y + bh + m)
+            self._box = x0, y0, x0 + (x1 - x0) // 2 * 2, y0 + (y1 - y0) // 2 * 2
+        return self._box
+
+    def _dense_image(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frame's :meth:`_search_box` at half resolution, normalised, highlights filled,
+        band-passed (zero near highlights and the field of view's edge), its field-of-view mask and
+        the box's origin (x, y px of the full frame)."""
+        x0, y0, x1, y1 = self._search_box()
+        w, h = x1 - x0, y1 - y0
         if self._fov_half is None:
-            self._fov_half = cv2.resize(self._fov, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
-        small_bgr = cv2.resize(frame, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+            self._fov_half = cv2.resize(self._fov[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+        small_bgr = cv2.resize(frame[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
         gray = cv2.cvtColor(small_bgr, cv2.COLOR_BGR2GRAY) if small_bgr.ndim == 3 else small_bgr
         fov = self._fov_half
         view = self._normalise(gray, fov, self._highlights(small_bgr, gray, fov), np.eye(3))
         img = _band(view.gray, 0.5 * self._BAND_FULL[0], 0.5 * self._BAND_FULL[1])
         img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
-        return img, fov
+        return img, fov, np.array([x0, y0], float)
 
     def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
@@ -1254,7 +1288,7 @@ class FeatureTracker(Tracker):
                     self._dense_tpl.append((kf, small[0], full[0]))
         if not self._dense_tpl:
             return None
-        img, fov = self._dense_image(frame)
+        img, fov, origin = self._dense_image(frame)
         best = None
         for kf, small, full in self._dense_tpl:
             half = small.shape[0] // 2
@@ -1263,7 +1297,7 @@ class FeatureTracker(Tracker):
             loc, top, second = _peaks(score, max(3, half // 2))
             if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
                     (best is None or top > best[2]):
-                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5, kf, top, full)
+                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full)
         if best is None:
             return None
         p0, kf, top, full = best
