@@ -18,15 +18,15 @@ def make(**kw):
                               upper=np.full(2, 2.0), control_dt=0.02, knowledge=nominal_knowledge())
 
 
-def drive(c, image, seconds=8.0, frame=0.05):
+def drive(c, image, seconds=8.0, frame=0.05, plant=EndoscopeParams()):
     """Step the controller with a motor sweep, and frames 0.3 s late showing ``image(tip)`` of the tip
-    (in equivalent handle rad: tip angle / assumed tip gain) of the nominal scope, the one the
-    controller assumes, driven by that sweep."""
+    (in equivalent handle rad: tip angle / assumed tip gain) of the ``plant`` scope (default: the
+    nominal one, the one the controller assumes) driven by that sweep."""
     c.reset(np.zeros(2), 0.0)
     t = 0.02 * np.arange(int(seconds / 0.02))
     m = np.column_stack([0.3 * np.sin(1.5 * t), 0.2 * np.sin(1.1 * t)])
     drives = DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3)
-    states = simulate(initial_state(1), pack_params(EndoscopeParams(), drives), np.repeat(m[:, None, :], 1, axis=1),
+    states = simulate(initial_state(1), pack_params(plant, drives), np.repeat(m[:, None, :], 1, axis=1),
                       0.001, substeps=20)
     tip = states[:, 0, 2:4] / c.cfg.tip_gain
     lag = int(round(0.3 / 0.02))
@@ -44,6 +44,26 @@ def test_supervisor_trusts_a_model_that_predicts_the_image():
     drive(c, lambda m, t: j @ m)
     assert c.trust > 0.8
     assert np.linalg.norm(c.jacobian.j - j) / np.linalg.norm(j) < 0.2
+
+
+def test_it_steers_with_a_candidate_scope_nearer_the_real_one():
+    # A slacker scope with more friction than assumed (1.3 mm slack, friction x1.6): the image lags the
+    # nominal model at every reversal. The bank finds a candidate with a wider loop than nominal.
+    plant = dataclasses.replace(EndoscopeParams(), cable_slack=0.0013, mu_n=0.16, friction_offset=2.56)
+    c = make()
+    j = np.array([[-500.0, 0.0], [0.0, -450.0]])
+    drive(c, lambda m, t: j @ m, seconds=14.0, plant=plant)
+    chosen = c.tip_model.endoscope
+    assert c.selector.switches >= 1
+    nominal = EndoscopeParams()
+    assert abs(chosen.cable_slack - plant.cable_slack) < abs(nominal.cable_slack - plant.cable_slack)
+    assert abs(chosen.mu_n - plant.mu_n) < abs(nominal.mu_n - plant.mu_n)
+
+
+def test_it_keeps_the_assumed_scope_when_that_is_the_real_one():
+    c = make()
+    drive(c, lambda m, t: np.array([[-500.0, 0.0], [0.0, -450.0]]) @ m, seconds=14.0)
+    assert c.selector.switches == 0 and c.tip_model.member == 0
 
 
 def test_supervisor_distrusts_an_image_that_contradicts_the_model():
