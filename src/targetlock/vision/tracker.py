@@ -422,7 +422,7 @@ class FeatureTracker(Tracker):
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
-                      "orb_searches": 0, "dense_searches": 0}
+                      "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -1323,6 +1323,8 @@ class FeatureTracker(Tracker):
                 _, top_q, second_q = _peaks(score_q, max(2, hq // 2))
                 if top_q >= s.dense_presearch_ncc and top_q >= s.dense_presearch_lead * second_q:
                     keep.append(t)
+                else:
+                    self.stats["dense_presearch_skips"] += 1
             tpls = keep
         best = None
         for kf, small, full, _ in tpls:
