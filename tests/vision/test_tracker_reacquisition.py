@@ -113,3 +113,21 @@ def test_a_target_that_returns_near_the_edge_of_the_round_view_is_reacquired_the
     assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)
     assert np.all(errs[-4:] < 2.0), errs.round(1)
     assert tr.stats["reacquisitions"] >= 1
+
+
+def test_the_quarter_resolution_presearch_changes_no_decision(retina, cam):
+    """While lost, a template is searched densely at half resolution only where it stands out at
+    quarter resolution; the half-resolution search alone decides. Under the instrument (nothing
+    stands out) the half-resolution searches are skipped, and the tracker reports exactly what it
+    reports without the pre-search: the same frames lost, the same re-acquisition, the same positions."""
+    here, there = (0.0, 0.0, 0.05), (0.010, 0.003, 0.05)
+    c0 = retina.render(np.eye(4), _pose(here), point_m=P_SEL).truth_px
+    frames = [retina.render(np.eye(4), _pose(here if i < 4 else there), point_m=P_SEL,
+                            occluders=_cover(c0) if 2 <= i < 12 else ()) for i in range(20)]
+    with_pre, without = FeatureTracker(NO_ORB), FeatureTracker(replace(NO_ORB, dense_presearch=False))
+    res, ref = _run(with_pre, frames), _run(without, frames)
+    assert with_pre.stats["dense_reacquisitions"] >= 1 and with_pre.stats["dense_searches"] >= 3
+    assert with_pre.stats["dense_presearch_skips"] >= 2 and without.stats["dense_presearch_skips"] == 0
+    assert [(r.valid, r.lost) for r in res] == [(r.valid, r.lost) for r in ref]
+    got = np.array([r.position_px for r in res if r.valid])
+    assert len(got) >= 6 and np.allclose(got, [r.position_px for r in ref if r.valid], atol=1e-9)
