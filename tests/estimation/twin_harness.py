@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from targetlock.controllers.pi import History
+from targetlock.controllers.ik import History
 from targetlock.estimation import BacklashFitEstimator, DelayFitEstimator, JacobianEstimator, prior_jacobian
 from targetlock.estimation.probe import nominal_width
 from targetlock.estimation.tip_jacobian import TipJacobianEstimator

@@ -107,14 +107,18 @@ class AdaptiveController(Controller):
         self.selector = ScopeSelector(len(candidates), np.arange(-0.16, 0.33, 0.04))
         self.tip_model = TipModel(candidates, horizon=k.latency + 2.0)
         self.tip_model.reset(t, motor)
-        self.effective = self._effective_at(np.array([t]))[0]
+
+    @property
+    def effective(self) -> np.ndarray:
+        """The modelled tip now (equivalent handle rad: tip angle over the assumed tip gain)."""
+        return self.tip_model.tip / self.cfg.tip_gain
 
     def _effective_at(self, times: np.ndarray) -> np.ndarray:
         """The modelled tip (equivalent handle rad: tip angle over the assumed tip gain) at the times (s)."""
         return self.tip_model.tips_at(times) / self.cfg.tip_gain
 
     def _update(self, obs: Observation | None, motor: np.ndarray, t: float) -> np.ndarray | None:
-        self.effective = self.tip_model.update(t, motor) / self.cfg.tip_gain
+        self.tip_model.update(t, motor)
         if obs is None:
             return None
         x = np.asarray(obs.offset, dtype=float)
@@ -143,7 +147,6 @@ class AdaptiveController(Controller):
             # Another candidate scope explains the image significantly better: steer with its motion.
             self.tip_model.member = self.selector.best
             est.rescale(scales)
-            self.effective = self.tip_model.tip / self.cfg.tip_gain
             e_c = self._effective_at(np.array([c - self.delay.delay]))[0]
         # Trust in the model: 1 while its predictions match (mismatch <= 0.3), 0 beyond 0.8.
         self.trust = float(np.clip((0.8 - self.mismatch) / 0.5, 0.0, 1.0)) if est.updates >= 5 else 0.0

@@ -14,6 +14,9 @@ On each new observation:
 """
 from __future__ import annotations
 
+import math
+from collections import deque
+
 import numpy as np
 from numba import njit
 
@@ -22,7 +25,6 @@ from ..model.kinematics import tip_pose
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
-from .pi import History
 
 __all__ = ["IKController", "aim_angles"]
 
@@ -66,6 +68,45 @@ def aim_angles(target: np.ndarray, phi_start: np.ndarray, length: float, n: int,
         phi[1] = min(max(phi[1] - dphi1, lower), upper)
     return phi
 
+
+class History:
+    """Recent timed samples of an angle pair (motor or tip, rad), to look up a past time (s)."""
+
+    def __init__(self, horizon: float, dt: float) -> None:
+        self._buf: deque[tuple[float, np.ndarray]] = deque(maxlen=max(4, int(math.ceil(horizon / dt)) + 4))
+
+    def push(self, t: float, value: np.ndarray) -> None:
+        self._buf.append((t, np.array(value, dtype=float)))
+
+    def clear(self) -> None:
+        self._buf.clear()
+
+    def at(self, t: float) -> np.ndarray:
+        """The value at time ``t``, interpolated; clamped to the oldest/newest sample."""
+        buf = self._buf
+        if not buf:
+            raise LookupError("no history yet")
+        if t <= buf[0][0]:
+            return buf[0][1].copy()
+        if t >= buf[-1][0]:
+            return buf[-1][1].copy()
+        # Newest samples are the likely ones: search backwards.
+        for i in range(len(buf) - 1, 0, -1):
+            t0, m0 = buf[i - 1]
+            if t0 <= t:
+                t1, m1 = buf[i]
+                f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+                return m0 + f * (m1 - m0)
+        return buf[0][1].copy()
+
+    def at_many(self, times: np.ndarray) -> np.ndarray:
+        """Values (n, 2) at many times (s), interpolated and clamped like :meth:`at`."""
+        if not self._buf:
+            raise LookupError("no history yet")
+        ts = np.fromiter((b[0] for b in self._buf), float, len(self._buf))
+        vs = np.array([b[1] for b in self._buf])
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        return np.column_stack([np.interp(times, ts, vs[:, k]) for k in range(vs.shape[1])])
 
 class IKController(Controller):
     """Target pixel + depth -> 3D target -> bending angles that centre it -> damped handle setpoint."""

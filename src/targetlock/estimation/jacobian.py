@@ -78,8 +78,6 @@ class JacobianEstimator:
         self.j = np.array(prior, dtype=float)
         self.prior = self.j.copy()
         self.max_coupling = max_coupling
-        det = np.linalg.det(self.j)
-        self.orientation = math.copysign(1.0, det) if det != 0 else 1.0
         self.velocity = np.zeros(2)                        # px/s
         self.p = np.diag([1.0 / prior_weight, 1.0 / prior_weight, 100.0])
         self.forgetting = forgetting

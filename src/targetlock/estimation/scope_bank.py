@@ -102,6 +102,8 @@ class ScopeSelector:
             jacobian: np.ndarray) -> np.ndarray | None:
         """A new frame. Returns None, or after a switch the column scales (2,) that carry a Jacobian
         relative to the old candidate's motion over to the new one's (from the two candidates' fitted J)."""
+        if self.members == 1:
+            return None                               # nothing to choose from
         offset = np.asarray(offset, dtype=float)
         motions = np.asarray(motions, dtype=float)
         if (not np.all(np.isfinite(offset)) or not math.isfinite(capture_time)

@@ -51,7 +51,7 @@ tip stiffness (+30 %: 9 %), not to a loop width off by 25 % or more (friction ±
 38-40 %). :attr:`explained` tells: 0.88-0.96 where J is right, 0.37-0.79 in those cases, about 0 on the
 looped shaft. A bank of five tip models with the friction scaled ×0.6-1.7, the best explained one
 chosen, brought the looped shaft to 20 %, the cable stiffness −30 % to 10 %, the uncalibrated scope to
-24 % (not built in: five models cost five times the CPU)."""
+24 % (such a bank, of 32 candidates, now chooses ``adaptive``'s tip model: :mod:`.scope_bank`)."""
 from __future__ import annotations
 
 import math

@@ -169,13 +169,13 @@ class TipModel:
             self._stacked = (np.fromiter(self._times, float, len(self._times)), np.array(self._tips))
         ts, history = self._stacked
         times = np.clip(np.atleast_1d(np.asarray(times, dtype=float)), ts[0], ts[-1])
-        hi = np.clip(np.searchsorted(ts, times, side="right"), 1, max(ts.size - 1, 1))
-        lo = hi - 1
-        span = ts[hi] - ts[lo] if ts.size > 1 else np.ones_like(times)
-        w = np.where(span > 0, (times - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)
-        if ts.size == 1:
-            hi = lo
         vs = history[:, member]
+        if ts.size == 1:
+            return np.repeat(vs, times.size, axis=0)
+        # Update times strictly increase (an update that does not advance is not recorded).
+        hi = np.clip(np.searchsorted(ts, times, side="right"), 1, ts.size - 1)
+        lo = hi - 1
+        w = (times - ts[lo]) / (ts[hi] - ts[lo])
         wshape = (-1,) + (1,) * (vs.ndim - 1)
         return vs[lo] + w.reshape(wshape) * (vs[hi] - vs[lo])
 

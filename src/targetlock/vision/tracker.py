@@ -239,6 +239,20 @@ def _peaks(score: np.ndarray, radius: int) -> tuple[tuple[int, int], float, floa
     return loc, float(top), float(second)
 
 
+def _match_around(img: np.ndarray, tpl: np.ndarray, centre: np.ndarray, r: int) -> tuple[np.ndarray, float] | None:
+    """Best place (px of ``img``, sub-pixel) of the square template ``tpl`` (odd side) within ``r`` px of
+    ``centre`` (px of ``img``), and its normalised correlation; None when that neighbourhood leaves ``img``."""
+    half = tpl.shape[0] // 2
+    c = np.round(centre).astype(int)
+    x0, y0 = c[0] - half - r, c[1] - half - r
+    side = tpl.shape[0] + 2 * r
+    if x0 < 0 or y0 < 0 or y0 + side > img.shape[0] or x0 + side > img.shape[1]:
+        return None
+    score = cv2.matchTemplate(img[y0:y0 + side, x0:x0 + side], tpl, cv2.TM_CCOEFF_NORMED)
+    _, top, _, loc = cv2.minMaxLoc(score)
+    return _subpixel(score, loc) + [x0 + half, y0 + half], float(top)
+
+
 def _subpixel(score: np.ndarray, loc: tuple[int, int]) -> np.ndarray:
     """Peak ``loc`` (x, y) of a correlation map refined by a parabola through its neighbours (px)."""
     x, y = loc
@@ -1342,20 +1356,10 @@ class FeatureTracker(Tracker):
         p0, kf, top, full = best
         # Full resolution, within a few px of the half-resolution peak.
         base = self._crop(frame, p0)
-        img = _band(base.gray, *self._BAND_FULL)
-        half = full.shape[0] // 2
-        r = 4
-        c = np.round(p0 - base.to_frame[:2, 2]).astype(int)
-        x0, y0 = c[0] - half - r, c[1] - half - r
-        if x0 < 0 or y0 < 0 or y0 + full.shape[0] + 2 * r > img.shape[0] or x0 + full.shape[1] + 2 * r > img.shape[1]:
+        fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
+        if fine is None or fine[1] < s.dense_reacquire_ncc:
             return None
-        score = cv2.matchTemplate(img[y0:y0 + full.shape[0] + 2 * r, x0:x0 + full.shape[1] + 2 * r], full,
-                                  cv2.TM_CCOEFF_NORMED)
-        _, top_f, _, loc = cv2.minMaxLoc(score)
-        if top_f < s.dense_reacquire_ncc:
-            return None
-        p = _subpixel(score, loc) + [x0 + half, y0 + half] + base.to_frame[:2, 2]
-        return p, kf, min(top, top_f)
+        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
         """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
@@ -1374,14 +1378,10 @@ class FeatureTracker(Tracker):
             q, patch = cand
             # where the tissue around the previous candidate went (at most a jump away)
             r = int(min(s.max_jump_px * self._steps, s.search_margin_px))
-            c = np.round(q - view.to_frame[:2, 2]).astype(int)
-            x0, y0 = c[0] - half - r, c[1] - half - r
-            if x0 >= 0 and y0 >= 0 and y0 + 2 * (half + r) + 1 <= img.shape[0] and x0 + 2 * (half + r) + 1 <= img.shape[1]:
-                score = cv2.matchTemplate(img[y0:y0 + 2 * (half + r) + 1, x0:x0 + 2 * (half + r) + 1], patch,
-                                          cv2.TM_CCOEFF_NORMED)
-                _, top_m, _, loc = cv2.minMaxLoc(score)
-                moved = _subpixel(score, loc) + [x0 + half, y0 + half] + view.to_frame[:2, 2]
-                if top_m >= s.dense_reacquire_ncc and np.hypot(*(moved - p)) <= s.dense_confirm_px:
+            again = _match_around(img, patch, q - view.to_frame[:2, 2], r)
+            if again is not None:
+                moved = again[0] + view.to_frame[:2, 2]
+                if again[1] >= s.dense_reacquire_ncc and np.hypot(*(moved - p)) <= s.dense_confirm_px:
                     rel = _similarity(self._from_anchor @ _inv(kf.from_anchor), kf.target)
                     key_to_cur = rel.copy()
                     key_to_cur[:2, 2] += p - _apply(rel, kf.target)
