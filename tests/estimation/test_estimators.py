@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from targetlock.estimation import (BacklashEstimator, BacklashFitEstimator, DelayEstimator, DelayFitEstimator,
+from targetlock.estimation import (BacklashEstimator, BacklashFitEstimator, DelayEstimator, DelayFitEstimator, DriftEstimator,
                                    JacobianEstimator, prior_jacobian)
 from targetlock.model.camera import CameraParams
 
@@ -154,3 +154,30 @@ def test_backlash_fit_per_axis_within_20_percent_with_a_moving_target_and_a_wron
     assert est.reversals >= 4
     assert est.axis_width(0, 0.3) == pytest.approx(width, rel=0.2)
     assert est.axis_width(1, 0.3) == pytest.approx(0.8 * width, rel=0.2)
+
+
+def feed_drift(est, w, fps=20.0, seconds=4.0, j=np.array([[-400.0, 0.0], [0.0, -380.0]]), seed=0, own=None):
+    """Frames of a target at ``w(t)`` (px, in the unbent scope's image) while the tip sits at ``own(t)``
+    (equivalent handle rad), with 0.8 px of tracker noise; returns the last velocity."""
+    rng = np.random.default_rng(seed)
+    for t in np.arange(0.0, seconds, 1.0 / fps):
+        e = np.zeros(2) if own is None else own(t)
+        v = est.add(t, w(t) + j @ e + rng.normal(0.0, 0.8, 2), e, j)
+    return v
+
+
+def test_drift_estimator_reads_a_steady_drift_through_our_own_motion():
+    # The tip follows the target, so the image barely moves: the drift is in image + J·(own motion).
+    v = feed_drift(DriftEstimator(), lambda t: np.array([8.0 * t, -5.0 * t]),
+                   own=lambda t: np.array([8.0 * t, -5.0 * t]) / 400.0 * 0.9)
+    np.testing.assert_allclose(v, [8.0, -5.0], atol=0.8)
+
+
+@pytest.mark.parametrize("case,w", [
+    ("still target", lambda t: np.array([3.0, -2.0])),
+    ("a step", lambda t: np.array([40.0, 0.0]) * (t > 3.0)),
+    ("a drift that stopped", lambda t: np.array([10.0, 0.0]) * min(t, 2.5)),
+    ("a slow wobble", lambda t: np.array([6.0 * np.sin(2.0 * t), 0.0])),
+])
+def test_drift_estimator_reports_no_drift_where_there_is_none(case, w):
+    assert np.all(feed_drift(DriftEstimator(), w) == 0.0), case

@@ -65,6 +65,8 @@ class ControllerConfig:
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
     adaptive_servo_gain: float = param(0.3, lo=0.01, hi=1.0, doc="adaptive: fraction of the predicted error removed per frame")
+    adaptive_drift_lead: float = param(1.0, lo=0.0, hi=2.0,
+                                       doc="adaptive: fraction of a clear, steady drift of the target's lag that is led (0: none)")
     adaptive_candidates: int = param(32, lo=1, hi=256,
                                      doc="adaptive: candidate endoscopes run around the assumed one, the one that best explains the image steering (1: the assumed only)")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")

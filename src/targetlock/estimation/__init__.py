@@ -17,6 +17,8 @@ output stays within stated physical limits whatever the input (noise, dropped fr
   axis by fitting a play operator (robust to the target's own motion); :func:`nominal_width` its prior;
 * :class:`DepthEstimator` — the target depth, from the Jacobian's size and (where observable) the
   tracker's scale;
+* :class:`DriftEstimator` — the target's own image velocity (px/s), reported only when it is a clear,
+  steady drift;
 * :class:`ProbeSignal` — a short bounded handle excitation for the first ≤ 2 s after engaging;
 * :class:`TipModel` — the assumed (nominal) endoscope run online on the measured handle angles:
   modelled tip angles with hysteresis and stick-slip, and their recent history; several candidate
@@ -28,6 +30,7 @@ from __future__ import annotations
 from .backlash import BacklashEstimator, BacklashFitEstimator
 from .delay import DelayEstimator, DelayFitEstimator
 from .depth import DepthEstimator
+from .drift import DriftEstimator
 from .jacobian import JacobianEstimator, prior_jacobian
 from .probe import ProbeSignal, nominal_width
 from .scope_bank import ScopeSelector, scope_candidates
@@ -35,6 +38,6 @@ from .tip_jacobian import TipJacobianEstimator, image_jacobian_parts
 from .tip_model import TipModel
 
 __all__ = ["JacobianEstimator", "prior_jacobian", "DelayEstimator", "DelayFitEstimator", "BacklashEstimator",
-           "BacklashFitEstimator", "DepthEstimator",
+           "BacklashFitEstimator", "DepthEstimator", "DriftEstimator",
            "ProbeSignal", "nominal_width", "TipModel", "TipJacobianEstimator",
            "image_jacobian_parts", "ScopeSelector", "scope_candidates"]
