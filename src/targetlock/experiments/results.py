@@ -213,9 +213,11 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   steps), and it pushes more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm).
   It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, and on the
   report's paths it is the best controller that does not know the plant. Its costs: a slower first
-  second far away (the caution); a larger lag than PI on a slowly drifting target at 10–15 cm (the
-  predictor sees the target's motion one latency late; extrapolating the target's own motion was
-  tried and did not pay for its noise); and at 1–2 cm on a scope far from the assumed one, a hunt
+  second far away (the caution); on a slowly drifting target it leads the drift only once the
+  target's own motion (the image less the modelled own motion) has been a clear straight line for
+  3 s, and by at most 6 px (a lead on every estimated velocity, or an uncapped one, cost more in
+  noise and overshoots than it gained), so a drift at 10–15 cm can still lag a little more than
+  PI's; and at 1–2 cm on a scope far from the assumed one, a hunt
   across the dead band until the scope bank has found a better candidate (it needs 4 s or more of
   own motion to tell them apart). On a
   wrongly stamped latency it depends on the delay estimate.
