@@ -174,3 +174,18 @@ def test_a_steady_drift_is_followed_without_the_servo_lag(tmp_path):
         settled[lead] = float(np.mean(data[data[:, 0] > 9.0, 3]))
     assert settled[0.0] > 3.0                   # the lag is there without the lead...
     assert settled[1.0] < 0.4 * settled[0.0]    # ...and mostly gone with it
+
+
+def test_the_dead_travel_is_crossed_at_once_but_never_beyond_the_step_asked_for():
+    c = make()
+    drive(c, lambda m, t: np.array([[-500.0, 0.0], [0.0, -450.0]]) @ m)
+    # drive() ends with both handles turning back towards the centre; reversing them (outwards again)
+    # first takes up slack and turns the friction around: the model says how far that is.
+    last = np.array([0.3 * 1.5 * np.cos(1.5 * 7.98), 0.2 * 1.1 * np.cos(1.1 * 7.98)])
+    reverse = -np.sign(last)
+    dead = c.tip_model.dead_travel(reverse)
+    assert np.all(np.sign(dead) == reverse) and np.all(np.abs(dead) > 0.02)
+    big = c._across_dead_travel(reverse * 1.0)
+    np.testing.assert_allclose(big, 0.8 * dead)            # the configured share of it
+    small = c._across_dead_travel(reverse * 0.01)
+    np.testing.assert_allclose(np.abs(small), 0.01)         # never more than the step itself

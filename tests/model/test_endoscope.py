@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from targetlock.model.drives import DriveParams
-from targetlock.model.endoscope import (EndoscopeParams, advance, calibrate_handle_radius, initial_state,
+from targetlock.model.endoscope import (EndoscopeParams, advance, calibrate_handle_radius, dead_travel, initial_state,
                                         pack_params, simulate, static_gain)
 from targetlock.model.twin import PRESETS, twin_config
 
@@ -141,3 +141,25 @@ def test_own_angle_friction_model_has_no_stall_at_the_centre():
     ramp(e, (1.0, 0.0), state=s)
     ramp(e, (0.0, 0.0), start=(1.0, 0.0), state=s)
     assert abs(s[0, 2]) < math.radians(0.5)
+
+
+@pytest.mark.parametrize("slack", [0.0004, 0.0012, -0.0003])
+def test_dead_travel_is_where_the_simulated_tip_starts_to_move(slack):
+    """Bend an axis out quasi-statically, then turn the handle back slowly: the tip first stands still
+    (slack, then the friction band), and starts back where dead_travel said."""
+    e = dataclasses.replace(EndoscopeParams(), cable_slack=slack)
+    drive = DriveParams(time_constant=0.0, max_velocity_ticks=1e9, min_angle=-6.3, max_angle=6.3)
+    params = pack_params(e, drive)
+    state = initial_state(1)
+    out = np.linspace(0.0, 0.8, 400)
+    simulate(state, params, np.column_stack([out, 0.3 * out])[:, None, :], 0.002, 10)
+    advance(state, params, np.array([[0.8, 0.24]]), 0.002, 500)
+    handle, tip = state[0, 0:2].copy(), state[0, 2:4].copy()
+    # Further out, the tip moves at once; back, only after the dead travel.
+    assert dead_travel(e, handle, tip, np.array([1.0, 0.0]))[0] == pytest.approx(0.0, abs=0.01)
+    back = dead_travel(e, handle, tip, np.array([-1.0, 0.0]))[0]
+    assert back < -0.05
+    ramp = handle[0] - np.linspace(0.0, 0.6, 1200)
+    tips = simulate(state, params, np.column_stack([ramp, np.full_like(ramp, handle[1])])[:, None, :], 0.002, 5)
+    start = ramp[np.argmax(tip[0] - tips[:, 0, 2] > 1e-4)] - handle[0]
+    assert back == pytest.approx(start, rel=0.1), (back, start)

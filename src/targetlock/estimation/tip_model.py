@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..model.drives import DriveParams
-from ..model.endoscope import EndoscopeParams, advance, initial_state, pack_params, simulate
+from ..model.endoscope import EndoscopeParams, advance, dead_travel, initial_state, pack_params, simulate
 
 __all__ = ["TipModel", "hysteresis_loop", "triangle"]
 
@@ -98,6 +98,12 @@ class TipModel:
     def tip(self) -> np.ndarray:
         """Modelled tip angles (rad) of the member read, at the last update."""
         return self.state[self.member, 2:4].copy()
+
+    def dead_travel(self, direction: np.ndarray) -> np.ndarray:
+        """Handle travel (rad, per axis) the member read needs, from its state now, before its tip moves
+        when the handle turns in ``direction`` (sign per axis): see :func:`~targetlock.model.endoscope.dead_travel`."""
+        state = self.state[self.member]
+        return dead_travel(self.endoscope, state[0:2], state[2:4], direction)
 
     @property
     def time(self) -> float:

@@ -211,6 +211,9 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   the latency no longer forces a low gain. After engaging, until a supervisor finds the model
   predicting the image, it acts as if the target were 1 cm away, the nearest it is made for (small
   steps), and it pushes more slowly where the Jacobian is large (stick-slip in the cables at 1–2 cm).
+  After a reversal it crosses at once most of the dead travel (slack and friction band) its model's
+  state says is left, at most the whole step the offset asks for (the report's hysteresis
+  compensation, from the online model instead of a fixed width).
   It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, and on the
   report's paths it is the best controller that does not know the plant. Its costs: a slower first
   second far away (the caution); on a slowly drifting target it leads the drift only once the

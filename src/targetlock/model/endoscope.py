@@ -39,6 +39,7 @@ from ..config import param
 from .drives import DriveParams, drive_step
 
 __all__ = ["EndoscopeParams", "pack_params", "initial_state", "advance", "simulate", "calibrate_handle_radius", "handle_for_tip", "static_gain",
+           "dead_travel",
            "FRICTION_MODELS"]
 
 FRICTION_MODELS = ("both-angles", "own-angle")
@@ -204,6 +205,34 @@ def calibrate_handle_radius(e: EndoscopeParams, handle_angle: float = math.radia
     """
     # handle_for_tip gives the cable stroke when the radius is 1 m/rad.
     return handle_for_tip(dataclasses.replace(e, handle_radius=1.0), tip_angle) / handle_angle
+
+
+def dead_travel(e: EndoscopeParams, handle: np.ndarray, tip: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Handle travel (rad, per axis, signed) left before a tip at rest at ``tip`` (rad) starts to move
+    when the handle, now at ``handle`` (rad), turns in ``direction`` (sign per axis; 0: none): the
+    cables' slack still to take up plus the friction band still to cross, quasi-statically. 0 where the
+    tip would move at once (it is already at its break-away point, or the axis is not asked to move).
+
+    Force balance at break-away in direction s: c·T(d) − K_tip·Phi = s·N, with T the pull-only cable
+    pair's net tension at stroke d = r_h·theta − c·Phi (the kernel's force law)."""
+    tip = np.asarray(tip, dtype=float)
+    normal = e.mu_n * (abs(tip[0]) + abs(tip[1]) + e.friction_offset) if e.friction_model == "both-angles" else None
+    c, kc, s0 = e.cable_arm, e.cable_stiffness, e.cable_slack
+    out = np.zeros(2)
+    for a in range(2):
+        s = float(np.sign(direction[a]))
+        if s == 0.0:
+            continue
+        n = normal if normal is not None else e.mu_n * abs(tip[a])
+        t = (e.tip_stiffness * tip[a] + s * n) / (c * kc)          # net cable stretch needed (m)
+        if s0 >= 0.0:                                                # one cable taut, the other slack
+            d = s0 + t if t > 0.0 else -s0 + t
+        else:                                                        # pretension: both taut near the centre
+            d = t / 2.0 if abs(t) <= -2.0 * s0 else (t + s0 if t > 0.0 else t - s0)
+        travel = (d + c * tip[a]) / e.handle_radius - float(handle[a])
+        if s * travel > 0.0:
+            out[a] = travel
+    return out
 
 
 def handle_for_tip(e: EndoscopeParams, tip_angle: float) -> float:
