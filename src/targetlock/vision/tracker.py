@@ -284,6 +284,15 @@ class TrackerSettings:
                                   doc="largest disagreement of the chained and the keyframe estimate")
     max_jump_px: float = param(30.0, unit="px", lo=1.0, hi=1000.0,
                                doc="largest distance from the constant-velocity prediction (else: false jump)")
+    max_view_scale_step: float = param(0.06, lo=0.0, hi=10.0,
+                                       doc="largest change of the view's scale (log) per frame interval believed from "
+                                           "the frame-to-frame features (beyond it they move the view by translation "
+                                           "only) or from fewer than 2 min_inliers keyframe features (beyond it "
+                                           "limited to this)")
+    max_view_rotation_step_deg: float = param(5.0, unit="deg", lo=0.0, hi=180.0,
+                                              doc="largest rotation of the view per frame interval believed from the "
+                                                  "frame-to-frame features or a few keyframe features (as "
+                                                  "max_view_scale_step)")
     max_misses: int = param(4, lo=0, hi=10000, doc="consecutive rejected frames before the target is declared lost")
     search_margin_px: float = param(40.0, unit="px", lo=0.0, hi=1000.0,
                                     doc="margin of the region of interest around the window at the predicted position")
@@ -436,7 +445,8 @@ class FeatureTracker(Tracker):
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
-                      "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0}
+                      "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
+                      "similarity_dropped": 0, "similarity_limited": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -1046,6 +1056,8 @@ class FeatureTracker(Tracker):
                 view = self._crop(frame, pred)
                 src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
                 chain = self._motion(src, dst, self._pos)
+        if chain is not None:
+            chain = self._steady(chain, steps)
         step = chain[1] if chain is not None else _translation(pred - self._pos)
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
@@ -1087,6 +1099,13 @@ class FeatureTracker(Tracker):
                 n_c = chain[3]
                 est = (n_in * est + n_c * est_chain) / (n_in + n_c)
             new_from_anchor = sim @ kf.from_anchor
+            if n_in < 2 * s.min_inliers and not self._plausible(new_from_anchor @ _inv(self._from_anchor), steps):
+                # A few keyframe features determine the view's scale and rotation poorly (as the
+                # chain's, see _steady), but a keyframe may also correct the chain's drift: the
+                # position is taken, the view's scale and rotation change by at most the plausible
+                # step (a real correction then takes a few frames).
+                self.stats["similarity_limited"] += 1
+                new_from_anchor = self._limited(new_from_anchor, steps, est)
             next_pts = kdst[inl]
         elif dense is not None:
             # Too few corners matched the keyframe, but its whole target window aligns densely.
@@ -1181,6 +1200,39 @@ class FeatureTracker(Tracker):
         if relock:
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
+
+    def _steady(self, chain: tuple, steps: float) -> tuple:
+        """The frame-to-frame motion ``chain`` with its scale and rotation kept only when they are
+        plausible for ``steps`` frame intervals (``max_view_scale_step``, ``max_view_rotation_step_deg``).
+        Few features, or features along one edge (a rim, a fold), leave them poorly determined: a
+        wrong 20 % / 15 deg step once taken into the view's similarity misaligned every later
+        keyframe warp, and the keyframe flow then found nothing (the target was lost with the chain
+        still following it). The position (the affine at the target) is kept either way."""
+        if self._plausible(chain[1], steps):
+            return chain
+        self.stats["similarity_dropped"] += 1
+        return chain[0], _translation(_apply(chain[0], self._pos) - self._pos), chain[2], chain[3]
+
+    def _limited(self, new_from_anchor: np.ndarray, steps: float, est: np.ndarray) -> np.ndarray:
+        """``new_from_anchor`` with its change of scale and rotation from the current view limited to
+        what is plausible in ``steps`` frame intervals, mapping the anchor's target to ``est``."""
+        s = self.settings
+        sc, ang = _scale_angle(new_from_anchor @ _inv(self._from_anchor))
+        ls = float(np.clip(math.log(sc), -s.max_view_scale_step * steps, s.max_view_scale_step * steps))
+        lim = math.radians(s.max_view_rotation_step_deg * steps)
+        a = float(np.clip(ang, -lim, lim))
+        r = math.exp(ls) * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        out = np.eye(3)
+        out[:2, :2] = r @ self._from_anchor[:2, :2]
+        out[:2, 2] = est - out[:2, :2] @ self._anchor.target
+        return out
+
+    def _plausible(self, step: np.ndarray, steps: float) -> bool:
+        """Similarity ``step`` (3x3) changes scale and rotation no more than believable in ``steps``
+        frame intervals."""
+        s = self.settings
+        sc, ang = _scale_angle(step)
+        return abs(math.log(sc)) <= s.max_view_scale_step * steps and abs(math.degrees(ang)) <= s.max_view_rotation_step_deg * steps
 
     def _reacquire(self, frame: np.ndarray) -> TrackResult | None:
         """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
