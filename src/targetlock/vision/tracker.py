@@ -828,7 +828,8 @@ class FeatureTracker(Tracker):
 
     _NOISE_BAND = 0.05  # variance of white noise (std 1) after the patch's resampling and band-pass (measured)
 
-    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray,
+                          motion_px: np.ndarray | None = None) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
         both band-passed patches without highlight pixels (their halo neither), the sensor noise
@@ -874,6 +875,44 @@ class FeatureTracker(Tracker):
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
             return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
+        out = self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok)
+        if out[0] >= self.settings.patch_keyframe_ncc or motion_px is None:
+            return out
+        # Motion blur smears the patch along the motion (up to the whole frame interval's motion
+        # with a long exposure): the band-passed texture across it is gone, so the patch
+        # decorrelates although it is the same tissue. Compare with the keyframe's patch smeared the
+        # same way (a covered patch does not match that either).
+        s = self.settings
+        d = np.linalg.solve(key_to_frame[:2, :2], np.asarray(motion_px, float))  # in keyframe px
+        length = float(np.hypot(*d))
+        if length < 3.0:
+            return out
+        for frac in (0.5, 1.0):
+            n = int(round(frac * length))
+            if n < 2:
+                continue
+            k = np.zeros((n | 1, n | 1), np.float32)
+            c = (n | 1) // 2
+            u = d / length
+            for t in np.linspace(-0.5 * n, 0.5 * n, 2 * n + 1):
+                k[int(round(c + t * u[1])), int(round(c + t * u[0]))] = 1.0
+            k /= k.sum()
+            refb = cv2.filter2D(ref, -1, k, borderType=cv2.BORDER_REPLICATE)
+            local = cv2.blur(refb * refb, (9, 9))
+            ref_local_b = np.maximum(local - nv_ref, 0.25 * local) + 1.0
+            if self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok)[0] < s.patch_keyframe_ncc:
+                continue
+            # The same tissue smeared: accepted, but no keyframe is made from it (its own
+            # correlation may be low: it is not registered well enough to hand on).
+            ncc = self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok, raw=True)[0]
+            return min(max(ncc, s.patch_reject_ncc), 0.99 * s.patch_keyframe_ncc), True
+        return out
+
+    def _patch_score(self, ref: np.ndarray, ref_local: np.ndarray, nv_ref: float, cur: np.ndarray, nv_cur: float,
+                     ok: np.ndarray, raw: bool = False) -> tuple[float, bool]:
+        """The target-patch comparison of :meth:`_patch_similarity` of the band-passed patches
+        ``ref`` and ``cur`` (noise variances ``nv_ref``, ``nv_cur``) over ``ok``; ``raw``: their
+        correlation only."""
         a, b = ref[ok], cur[ok]
         a = a - a.mean()
         b = b - b.mean()
@@ -885,6 +924,8 @@ class FeatureTracker(Tracker):
         e_cur = max(e_cur - nv_cur * b.size, 0.25 * e_cur)
         den = math.sqrt(e_cur * e_ref)
         ncc = min(1.0, float(np.dot(a, b)) / den) if den > 1e-3 else 0.0
+        if raw:
+            return ncc, False
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
@@ -1144,7 +1185,7 @@ class FeatureTracker(Tracker):
             ref = self._key
             ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
         ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
-        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame)
+        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame, (est - self._pos) / steps)
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
