@@ -327,7 +327,7 @@ def test_a_poorly_determined_scale_or_rotation_does_not_lose_the_target(cam, pho
 def test_an_implausible_view_step_keeps_the_position_but_not_the_scale_or_rotation(renderer, sel_pose):
     """The frame-to-frame motion's similarity is believed up to max_view_scale_step /
     max_view_rotation_step_deg per frame interval (scaled by the interval): a 20 % / 14 deg step
-    keeps only the target's displacement; a small step is kept whole; a few keyframe features
+    keeps only the target's displacement and marks the chain suspect; a small step is kept whole; a few keyframe features
     change the view's scale and rotation by at most the plausible step (a real correction then
     takes a few frames) while the position is theirs."""
     from targetlock.vision.tracker import _apply, _scale_angle
@@ -344,12 +344,14 @@ def test_an_implausible_view_step_keeps_the_position_but_not_the_scale_or_rotati
         return m
 
     big = sim(0.8, -14.0, (5.0, -3.0))
-    chain = tr._steady((big, big, None, 20), 1.0)
-    assert _scale_angle(chain[1]) == pytest.approx((1.0, 0.0))
+    chain, suspect = tr._steady((big, big, None, 20), 1.0)
+    assert suspect and _scale_angle(chain[1]) == pytest.approx((1.0, 0.0))
     assert _apply(chain[1], pos) == pytest.approx(pos + (5.0, -3.0))
-    assert tr._steady((big, big, None, 20), 5.0)[1] is big  # five intervals (dropped frames): plausible
+    chain, suspect = tr._steady((big, big, None, 20), 5.0)  # five intervals (dropped frames): plausible
+    assert chain[1] is big and not suspect
     small = sim(1.03, 2.0, (5.0, -3.0))
-    assert tr._steady((small, small, None, 20), 1.0)[1] is small
+    chain, suspect = tr._steady((small, small, None, 20), 1.0)
+    assert chain[1] is small and not suspect
     est = pos + (5.0, -3.0)
     lim = tr._limited(big @ tr._from_anchor, 1.0, est)
     sc, ang = _scale_angle(lim @ np.linalg.inv(tr._from_anchor))

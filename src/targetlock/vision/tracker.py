@@ -1097,8 +1097,9 @@ class FeatureTracker(Tracker):
                 view = self._crop(frame, pred)
                 src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
                 chain = self._motion(src, dst, self._pos)
+        suspect = False  # the chain's own scale/rotation were implausible: it is no corroboration
         if chain is not None:
-            chain = self._steady(chain, steps)
+            chain, suspect = self._steady(chain, steps)
         step = chain[1] if chain is not None else _translation(pred - self._pos)
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
@@ -1116,7 +1117,7 @@ class FeatureTracker(Tracker):
         if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
-        if key is None and current is not None and chain is not None and not relock:
+        if key is None and current is not None and chain is not None and not relock and not suspect:
             # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
             # halo out, which on weak texture can outweigh the tissue). An ECC match that
             # disagrees with the chain is a warning kept: the frame is rejected below.
@@ -1162,7 +1163,7 @@ class FeatureTracker(Tracker):
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]]
-        elif (chain is not None and not relock and self._misses == 0 and self._chain_only < 3
+        elif (chain is not None and not suspect and not relock and self._misses == 0 and self._chain_only < 3
               and chain[3] >= 2 * s.min_inliers):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
@@ -1242,17 +1243,21 @@ class FeatureTracker(Tracker):
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
 
-    def _steady(self, chain: tuple, steps: float) -> tuple:
+    def _steady(self, chain: tuple, steps: float) -> tuple[tuple, bool]:
         """The frame-to-frame motion ``chain`` with its scale and rotation kept only when they are
         plausible for ``steps`` frame intervals (``max_view_scale_step``, ``max_view_rotation_step_deg``).
         Few features, or features along one edge (a rim, a fold), leave them poorly determined: a
         wrong 20 % / 15 deg step once taken into the view's similarity misaligned every later
         keyframe warp, and the keyframe flow then found nothing (the target was lost with the chain
-        still following it). The position (the affine at the target) is kept either way."""
+        still following it). The position (the affine at the target) is kept, but such a chain is
+        suspect (also returned): it still predicts and is checked against a keyframe's features,
+        but it no longer corroborates a dense match or carries a frame alone (on seed 2's coffee
+        `specular` a suspect chain and an ECC match agreed frame after frame while both drifted
+        6 -> 19 px off the target)."""
         if self._plausible(chain[1], steps):
-            return chain
+            return chain, False
         self.stats["similarity_dropped"] += 1
-        return chain[0], _translation(_apply(chain[0], self._pos) - self._pos), chain[2], chain[3]
+        return (chain[0], _translation(_apply(chain[0], self._pos) - self._pos), chain[2], chain[3]), True
 
     def _limited(self, new_from_anchor: np.ndarray, steps: float, est: np.ndarray) -> np.ndarray:
         """``new_from_anchor`` with its change of scale and rotation from the current view limited to
