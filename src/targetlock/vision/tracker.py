@@ -18,7 +18,10 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
     returns close to it and overrules a drifted chain. When too few corners follow the keyframe
     (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
-    window stands in for them, accepted only when it agrees with the chain. A rejected frame is
+    window stands in for them, accepted only when it agrees with the chain. The view's scale and
+    rotation change per frame by at most a plausible step when only the chain or a few keyframe
+    features measure them (features along one edge determine them poorly); a chain beyond it is
+    suspect and corroborates no dense match. A rejected frame is
     **retried** on local-mean-free images (an exposure step that clips or unclips large areas
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
@@ -840,7 +843,9 @@ class FeatureTracker(Tracker):
         and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
         1 when the keyframe's patch itself is uniform or mostly glare (nothing to compare). Also
         returns whether the patch passed only as a blurred view (a keyframe made from it is not
-        used to re-acquire)."""
+        used to re-acquire). ``motion_px``: the target's motion per frame interval (px); a patch
+        that decorrelated is then also compared with the keyframe's smeared along it (motion blur),
+        and passing that way scores just below ``patch_keyframe_ncc`` (accepted, no keyframe)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
@@ -1278,7 +1283,8 @@ class FeatureTracker(Tracker):
         frame intervals."""
         s = self.settings
         sc, ang = _scale_angle(step)
-        return abs(math.log(sc)) <= s.max_view_scale_step * steps and abs(math.degrees(ang)) <= s.max_view_rotation_step_deg * steps
+        return (abs(math.log(sc)) <= s.max_view_scale_step * steps and
+                abs(math.degrees(ang)) <= s.max_view_rotation_step_deg * steps)
 
     def _reacquire(self, frame: np.ndarray) -> TrackResult | None:
         """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
