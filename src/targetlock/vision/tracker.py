@@ -18,7 +18,10 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
     returns close to it and overrules a drifted chain. When too few corners follow the keyframe
     (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
-    window stands in for them, accepted only when it agrees with the chain. A rejected frame is
+    window stands in for them, accepted only when it agrees with the chain. The view's scale and
+    rotation change per frame by at most a plausible step when only the chain or a few keyframe
+    features measure them (features along one edge determine them poorly); a chain beyond it is
+    suspect and corroborates no dense match. A rejected frame is
     **retried** on local-mean-free images (an exposure step that clips or unclips large areas
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
@@ -284,6 +287,15 @@ class TrackerSettings:
                                   doc="largest disagreement of the chained and the keyframe estimate")
     max_jump_px: float = param(30.0, unit="px", lo=1.0, hi=1000.0,
                                doc="largest distance from the constant-velocity prediction (else: false jump)")
+    max_view_scale_step: float = param(0.06, lo=0.0, hi=10.0,
+                                       doc="largest change of the view's scale (log) per frame interval believed from "
+                                           "the frame-to-frame features (beyond it they move the view by translation "
+                                           "only) or from fewer than 2 min_inliers keyframe features (beyond it "
+                                           "limited to this)")
+    max_view_rotation_step_deg: float = param(5.0, unit="deg", lo=0.0, hi=180.0,
+                                              doc="largest rotation of the view per frame interval believed from the "
+                                                  "frame-to-frame features or a few keyframe features (as "
+                                                  "max_view_scale_step)")
     max_misses: int = param(4, lo=0, hi=10000, doc="consecutive rejected frames before the target is declared lost")
     search_margin_px: float = param(40.0, unit="px", lo=0.0, hi=1000.0,
                                     doc="margin of the region of interest around the window at the predicted position")
@@ -436,7 +448,8 @@ class FeatureTracker(Tracker):
         self.stats = {"frames": 0, "misses": 0, "reacquisitions": 0, "keyframes": 0, "false_jumps": 0,
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
-                      "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0}
+                      "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
+                      "similarity_dropped": 0, "similarity_limited": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -818,7 +831,8 @@ class FeatureTracker(Tracker):
 
     _NOISE_BAND = 0.05  # variance of white noise (std 1) after the patch's resampling and band-pass (measured)
 
-    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray) -> tuple[float, bool]:
+    def _patch_similarity(self, view: _View, kf: _Keyframe, key_to_frame: np.ndarray,
+                          motion_px: np.ndarray | None = None) -> tuple[float, bool]:
         """How well the target's own patch (side ~0.4 window) in ``view``, mapped by
         ``key_to_frame`` (3x3), still matches keyframe ``kf``: the normalised cross-correlation of
         both band-passed patches without highlight pixels (their halo neither), the sensor noise
@@ -829,7 +843,9 @@ class FeatureTracker(Tracker):
         and it still correlates ``patch_blur_ncc`` (weak texture, blurred); 0 for a uniform patch,
         1 when the keyframe's patch itself is uniform or mostly glare (nothing to compare). Also
         returns whether the patch passed only as a blurred view (a keyframe made from it is not
-        used to re-acquire)."""
+        used to re-acquire). ``motion_px``: the target's motion per frame interval (px); a patch
+        that decorrelated is then also compared with the keyframe's smeared along it (motion blur),
+        and passing that way scores just below ``patch_keyframe_ncc`` (accepted, no keyframe)."""
         half = max(7, int(round(0.2 * self._window)))
         side = 2 * half + 1
         to_patch = _translation(kf.target - half)
@@ -864,6 +880,44 @@ class FeatureTracker(Tracker):
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
             return 1.0, False  # mostly glare: nothing to compare (the glare test is elsewhere)
+        out = self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok)
+        if out[0] >= self.settings.patch_keyframe_ncc or motion_px is None:
+            return out
+        # Motion blur smears the patch along the motion (up to the whole frame interval's motion
+        # with a long exposure): the band-passed texture across it is gone, so the patch
+        # decorrelates although it is the same tissue. Compare with the keyframe's patch smeared the
+        # same way (a covered patch does not match that either).
+        s = self.settings
+        d = np.linalg.solve(key_to_frame[:2, :2], np.asarray(motion_px, float))  # in keyframe px
+        length = float(np.hypot(*d))
+        if length < 3.0:
+            return out
+        for frac in (0.5, 1.0):
+            n = int(round(frac * length))
+            if n < 2:
+                continue
+            k = np.zeros((n | 1, n | 1), np.float32)
+            c = (n | 1) // 2
+            u = d / length
+            for t in np.linspace(-0.5 * n, 0.5 * n, 2 * n + 1):
+                k[int(round(c + t * u[1])), int(round(c + t * u[0]))] = 1.0
+            k /= k.sum()
+            refb = cv2.filter2D(ref, -1, k, borderType=cv2.BORDER_REPLICATE)
+            local = cv2.blur(refb * refb, (9, 9))
+            ref_local_b = np.maximum(local - nv_ref, 0.25 * local) + 1.0
+            if self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok)[0] < s.patch_keyframe_ncc:
+                continue
+            # The same tissue smeared: accepted, but no keyframe is made from it (its own
+            # correlation may be low: it is not registered well enough to hand on).
+            ncc = self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok, raw=True)[0]
+            return min(max(ncc, s.patch_reject_ncc), 0.99 * s.patch_keyframe_ncc), True
+        return out
+
+    def _patch_score(self, ref: np.ndarray, ref_local: np.ndarray, nv_ref: float, cur: np.ndarray, nv_cur: float,
+                     ok: np.ndarray, raw: bool = False) -> tuple[float, bool]:
+        """The target-patch comparison of :meth:`_patch_similarity` of the band-passed patches
+        ``ref`` and ``cur`` (noise variances ``nv_ref``, ``nv_cur``) over ``ok``; ``raw``: their
+        correlation only."""
         a, b = ref[ok], cur[ok]
         a = a - a.mean()
         b = b - b.mean()
@@ -875,6 +929,8 @@ class FeatureTracker(Tracker):
         e_cur = max(e_cur - nv_cur * b.size, 0.25 * e_cur)
         den = math.sqrt(e_cur * e_ref)
         ncc = min(1.0, float(np.dot(a, b)) / den) if den > 1e-3 else 0.0
+        if raw:
+            return ncc, False
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
@@ -1046,6 +1102,9 @@ class FeatureTracker(Tracker):
                 view = self._crop(frame, pred)
                 src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
                 chain = self._motion(src, dst, self._pos)
+        suspect = False  # the chain's own scale/rotation were implausible: it is no corroboration
+        if chain is not None:
+            chain, suspect = self._steady(chain, steps)
         step = chain[1] if chain is not None else _translation(pred - self._pos)
         anchor_to_pred = step @ self._from_anchor
         # 2) keyframe -> this frame, predicted through the chain
@@ -1063,7 +1122,7 @@ class FeatureTracker(Tracker):
         if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
-        if key is None and current is not None and chain is not None and not relock:
+        if key is None and current is not None and chain is not None and not relock and not suspect:
             # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
             # halo out, which on weak texture can outweigh the tissue). An ECC match that
             # disagrees with the chain is a warning kept: the frame is rejected below.
@@ -1087,6 +1146,13 @@ class FeatureTracker(Tracker):
                 n_c = chain[3]
                 est = (n_in * est + n_c * est_chain) / (n_in + n_c)
             new_from_anchor = sim @ kf.from_anchor
+            if n_in < 2 * s.min_inliers and not self._plausible(new_from_anchor @ _inv(self._from_anchor), steps):
+                # A few keyframe features determine the view's scale and rotation poorly (as the
+                # chain's, see _steady), but a keyframe may also correct the chain's drift: the
+                # position is taken, the view's scale and rotation change by at most the plausible
+                # step (a real correction then takes a few frames).
+                self.stats["similarity_limited"] += 1
+                new_from_anchor = self._limited(new_from_anchor, steps, est)
             next_pts = kdst[inl]
         elif dense is not None:
             # Too few corners matched the keyframe, but its whole target window aligns densely.
@@ -1102,7 +1168,7 @@ class FeatureTracker(Tracker):
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]]
-        elif (chain is not None and not relock and self._misses == 0 and self._chain_only < 3
+        elif (chain is not None and not suspect and not relock and self._misses == 0 and self._chain_only < 3
               and chain[3] >= 2 * s.min_inliers):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
@@ -1125,7 +1191,7 @@ class FeatureTracker(Tracker):
             ref = self._key
             ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
         ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
-        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame)
+        ncc, blurred = self._patch_similarity(view, ref, ref_to_frame, (est - self._pos) / steps)
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
@@ -1181,6 +1247,44 @@ class FeatureTracker(Tracker):
         if relock:
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
+
+    def _steady(self, chain: tuple, steps: float) -> tuple[tuple, bool]:
+        """The frame-to-frame motion ``chain`` with its scale and rotation kept only when they are
+        plausible for ``steps`` frame intervals (``max_view_scale_step``, ``max_view_rotation_step_deg``).
+        Few features, or features along one edge (a rim, a fold), leave them poorly determined: a
+        wrong 20 % / 15 deg step once taken into the view's similarity misaligned every later
+        keyframe warp, and the keyframe flow then found nothing (the target was lost with the chain
+        still following it). The position (the affine at the target) is kept, but such a chain is
+        suspect (also returned): it still predicts and is checked against a keyframe's features,
+        but it no longer corroborates a dense match or carries a frame alone (on seed 2's coffee
+        `specular` a suspect chain and an ECC match agreed frame after frame while both drifted
+        6 -> 19 px off the target)."""
+        if self._plausible(chain[1], steps):
+            return chain, False
+        self.stats["similarity_dropped"] += 1
+        return (chain[0], _translation(_apply(chain[0], self._pos) - self._pos), chain[2], chain[3]), True
+
+    def _limited(self, new_from_anchor: np.ndarray, steps: float, est: np.ndarray) -> np.ndarray:
+        """``new_from_anchor`` with its change of scale and rotation from the current view limited to
+        what is plausible in ``steps`` frame intervals, mapping the anchor's target to ``est``."""
+        s = self.settings
+        sc, ang = _scale_angle(new_from_anchor @ _inv(self._from_anchor))
+        ls = float(np.clip(math.log(sc), -s.max_view_scale_step * steps, s.max_view_scale_step * steps))
+        lim = math.radians(s.max_view_rotation_step_deg * steps)
+        a = float(np.clip(ang, -lim, lim))
+        r = math.exp(ls) * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        out = np.eye(3)
+        out[:2, :2] = r @ self._from_anchor[:2, :2]
+        out[:2, 2] = est - out[:2, :2] @ self._anchor.target
+        return out
+
+    def _plausible(self, step: np.ndarray, steps: float) -> bool:
+        """Similarity ``step`` (3x3) changes scale and rotation no more than believable in ``steps``
+        frame intervals."""
+        s = self.settings
+        sc, ang = _scale_angle(step)
+        return (abs(math.log(sc)) <= s.max_view_scale_step * steps and
+                abs(math.degrees(ang)) <= s.max_view_rotation_step_deg * steps)
 
     def _reacquire(self, frame: np.ndarray) -> TrackResult | None:
         """Whole-frame ORB search for any keyframe, verified by RANSAC and by the optical-flow
