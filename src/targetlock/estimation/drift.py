@@ -55,20 +55,26 @@ class DriftEstimator:
         if t[-1] - t[0] < 0.8 * self.window:
             return np.zeros(2)
         w = x - np.array([f[2] for f in self.frames]) @ j.T
-        t = t - t.mean()
-        a = np.column_stack([np.ones(n), t])
-        coef, *_ = np.linalg.lstsq(a, w, rcond=None)
-        slope = coef[1]
-        scatter = max(float(np.sqrt(np.mean(np.sum((w - a @ coef) ** 2, axis=1)))), self.min_scatter)
+        slope, fit_rms = _line(t, w)
+        scatter = max(fit_rms, self.min_scatter)
         speed = float(np.linalg.norm(slope))
-        if speed * (t[-1] - t[0]) < self.significance * scatter or speed > self.max_speed:
+        span = float(t[-1] - t[0])
+        if speed * span < self.significance * scatter or speed > self.max_speed:
             return np.zeros(2)
         half = n // 2
         for part in (slice(0, half), slice(half, n)):
-            tp = t[part]
-            if tp.size < 4 or np.ptp(tp) <= 0:
+            if np.ptp(t[part]) <= 0:
                 return np.zeros(2)
-            s = np.polyfit(tp, w[part], 1)[0]
-            if np.linalg.norm(s - slope) > self.consistency * speed:
+            if np.linalg.norm(_line(t[part], w[part])[0] - slope) > self.consistency * speed:
                 return np.zeros(2)
         return slope
+
+
+def _line(t: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares slope (per column of ``w``, units of w per s) of ``w`` over ``t`` and the rms
+    distance of the points from the fitted line."""
+    tc = t - t.mean()
+    wc = w - w.mean(axis=0)
+    slope = tc @ wc / float(tc @ tc)
+    res = wc - np.outer(tc, slope)
+    return slope, float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
