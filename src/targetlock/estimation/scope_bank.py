@@ -76,22 +76,18 @@ class ScopeSelector:
     frames once ``min_frames`` are in. The candidate read (:attr:`best`) changes only to one that
     explains the window significantly better: the frames' residuals of the two, compared pairwise (the
     tracker's noise is common to both and drops out), differ by at least ``min_t`` standard errors
-    (with 32 candidates, the best of pure noise reaches about 2), and its roughness is at least
-    ``min_lead`` (a fraction) below the one read's. The lead guards against a window that only says
-    "the one read is wrong": then a group of very different candidates ties within a few percent, all
-    significantly better than the one read, and the first of them is as likely wrong as right. Both must
-    hold in ``confirm`` windows in a row for the same candidate. Each candidate is judged at its best
+    (with 32 candidates, the best of pure noise reaches about 2). Each candidate is judged at its best
     delay: the video latency is not known either."""
 
     def __init__(self, members: int, delays: np.ndarray, *, window: int = 120, every: int = 10,
-                 min_frames: int = 80, min_t: float = 2.0, min_lead: float = 0.1, confirm: int = 2) -> None:
+                 min_frames: int = 80, min_t: float = 2.5, confirm: int = 2) -> None:
         if members < 1:
             raise ValueError(f"ScopeSelector: members = {members}; allowed: >= 1")
         self.members = members
         self.delays = np.atleast_1d(np.asarray(delays, dtype=float))
         self.best = 0
         self.every, self.min_frames = every, min_frames
-        self.min_t, self.min_lead = min_t, min_lead
+        self.min_t = min_t
         self.confirm = confirm
         self._pending = (-1, 0)          # candidate found significantly better, in how many windows in a row
         self.frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=window)
@@ -129,7 +125,7 @@ class ScopeSelector:
         self.cost = cost[at, np.arange(m)]
         cur, new = self.best, int(np.argmin(self.cost))
         self.significance = _paired_t(rn[at[cur], cur], rn[at[new], new], kept[at[new], new]) if new != cur else 0.0
-        if self.significance < self.min_t or self.cost[cur] < (1.0 + self.min_lead) * self.cost[new]:
+        if self.significance < self.min_t:
             self._pending = (-1, 0)
             return None
         count = self._pending[1] + 1 if self._pending[0] == new else 1
