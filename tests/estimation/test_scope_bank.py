@@ -11,9 +11,10 @@ J = np.array([[-900.0, 0.0], [0.0, -800.0]])       # px per tip rad, a near targ
 
 
 def _run(truth: EndoscopeParams, candidates: list[EndoscopeParams], delay: float, seconds: float = 14.0,
-         seed: int = 0) -> ScopeSelector:
+         seed: int = 0, switch_times: list[float] | None = None) -> ScopeSelector:
     """Motor reversals on both axes (a lock hunting about the centre); the image follows ``truth``'s tip
-    ``delay`` s behind the stamps, with 1 px tracker noise, 20 fps."""
+    ``delay`` s behind the stamps, with 1 px tracker noise, 20 fps from 0.5 s on. The capture times of
+    the frames that made the selector switch are appended to ``switch_times``."""
     rng = np.random.default_rng(seed)
     bank = TipModel(candidates, horizon=3.0)
     plant = TipModel(truth, horizon=3.0)
@@ -30,7 +31,8 @@ def _run(truth: EndoscopeParams, candidates: list[EndoscopeParams], delay: float
         if t >= next_frame + 0.6:           # frames arrive 0.6 s after they are stamped
             c = next_frame
             x = J @ plant.tip_at(c - delay) + rng.normal(0.0, 1.0, 2)
-            sel.add(c, x, bank.all_tips_at(c - DELAYS), J)
+            if sel.add(c, x, bank.all_tips_at(c - DELAYS), J) is not None and switch_times is not None:
+                switch_times.append(c)
             next_frame += frame_every
     return sel
 
@@ -74,3 +76,98 @@ def test_selector_ignores_garbage_frames():
     assert sel.add(1.0, np.zeros(2), np.zeros((3, 4, 2)), J) is None       # wrong shape
     assert sel.add(float("inf"), np.zeros(2), motions, J) is None
     assert len(sel.frames) == 0 and sel.best == 0
+
+
+def test_selector_switches_as_soon_as_it_judges_when_the_evidence_is_strong():
+    """With a lot of own motion (reversals on both axes every ~1.5 s) the first judgement (80 frames,
+    4 s of frames at 20 fps, confirmed 10 frames later) already finds the scope: the switch comes at
+    the first possible frame, not seconds later."""
+    cands = scope_candidates(EndoscopeParams(), 32)
+    truth = cands[12]
+    switched_at: list[float] = []
+    sel = _run(truth, cands, delay=0.12, seconds=8.0, switch_times=switched_at)
+    first_frame, fps = 0.5, 20.0
+    assert switched_at and switched_at[0] <= first_frame + (sel.min_frames + sel.every) / fps + 1e-9
+    assert abs(cands[sel.best].mu_n / truth.mu_n - 1.0) < 0.2
+    assert abs(cands[sel.best].cable_slack - truth.cable_slack) < 0.0003
+
+
+def _closed_loop(preset: str, distance: float, path: str, seconds: float = 10.0):
+    """``adaptive`` (nominal knowledge: the calibrated scope) locking on the twin of ``preset``; returns
+    the controller, the times (s) and the candidate it steered with at each tick, and each candidate's
+    error (deg rms, after the best gain and offset per axis) in explaining the twin's true tip angles."""
+    import dataclasses
+
+    from targetlock.controllers import ControllerConfig, KnowledgeConfig
+    from targetlock.experiments.target_lock import RunConfig, build_controller, build_rig
+    from targetlock.loop.clock import SimClock
+    from targetlock.loop.gate import ObservationGate
+    from targetlock.loop.runner import ControlLoop, LoopConfig
+    from targetlock.model.twin import twin_config
+
+    twin = twin_config(preset)
+    twin = dataclasses.replace(twin, scene=dataclasses.replace(twin.scene, path=path, distance=distance))
+    cfg = RunConfig(twin=twin, controller=ControllerConfig(kind="adaptive"), knowledge=KnowledgeConfig(),
+                    loop=LoopConfig(seconds=seconds))
+    rig = build_rig(cfg)
+    c = build_controller(cfg, rig)
+    loop = ControlLoop(rig, c, rate=cfg.loop.rate, clock=SimClock(),
+                       gate=ObservationGate.for_camera(cfg.loop.gate, rig.camera))
+    times, handles, tips, member = [], [], [], []
+
+    def on(tick):
+        times.append(tick.time)
+        handles.append(rig.handle_angles())
+        tips.append(rig.tip_angles())
+        member.append(c.tip_model.member if c.engaged else 0)
+
+    loop.run(seconds, on)
+    times, handles, tips, member = map(np.array, (times, handles, tips, member))
+    bank = TipModel(c.tip_model.endoscopes, horizon=seconds + 1.0)
+    bank.reset(times[0], handles[0])
+    for t, h in zip(times[1:], handles[1:]):
+        bank.update(t, h)
+    modelled = bank.all_tips_at(times)                   # (n, candidates, 2)
+    err = np.zeros(modelled.shape[1])
+    for k in range(err.size):
+        for a in range(2):
+            design = np.column_stack([modelled[:, k, a], np.ones(times.size)])
+            coef, *_ = np.linalg.lstsq(design, tips[:, a], rcond=None)
+            err[k] += np.mean((design @ coef - tips[:, a]) ** 2)
+    return c, times, member, np.degrees(np.sqrt(err))
+
+
+@pytest.fixture(scope="module")
+def looped_shaft_run():
+    return _closed_loop("looped-shaft", 0.03, "ellipse", seconds=12.0)
+
+
+def test_in_the_loop_it_finds_a_looped_shaft(looped_shaft_run):
+    """On a looped shaft (friction and slack far from the assumed calibrated scope) at 3 cm, the lock
+    steers, within 6 s of engaging and from then on, with a candidate that explains the true tip more
+    than 2x better than the assumed one (measured: from 5.8 s, 2.5x; from 8.1 s, 10x)."""
+    c, times, member, err = looped_shaft_run
+    assert err[0] > 2.0                                   # the assumed scope is far off (deg)
+    good = err[member] < 0.5 * err[0]
+    assert good.any() and np.all(good[np.argmax(good):])
+    assert times[np.argmax(good)] - times[0] < 6.0
+
+
+@pytest.mark.xfail(strict=True, reason="open goal: the first switch (4.5 s) goes to a candidate worse than the "
+                                       "assumed one; a 2.5x better one follows at 5.8 s, the 10x better one at 8.1 s")
+def test_in_the_loop_its_first_switch_on_a_looped_shaft_is_to_a_good_candidate_within_5_s(looped_shaft_run):
+    c, times, member, err = looped_shaft_run
+    switched = member != 0
+    assert switched.any() and times[np.argmax(switched)] - times[0] < 5.0
+    assert err[member[np.argmax(switched)]] < 0.3 * err[0]
+
+
+@pytest.mark.parametrize("distance, path", [
+    (0.03, "ellipse"), (0.06, "step"),
+    pytest.param(0.12, "linear", marks=pytest.mark.xfail(strict=True, reason=(
+        "open: a window where a group of very different candidates ties within 1 %, all 'significantly' better "
+        "than the assumed scope, switches at 4.5 s to one 100x worse (undone at 8.5 s; the report's straight "
+        "path 33 -> 35 px). Requiring a 10 % roughness lead fixes this case but lost one robustness case")))])
+def test_in_the_loop_it_keeps_the_assumed_scope_when_that_is_the_real_one(distance, path):
+    c, times, member, err = _closed_loop("calibrated", distance, path)
+    assert c.selector.switches == 0 and np.all(member == 0)
