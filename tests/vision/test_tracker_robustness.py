@@ -449,8 +449,9 @@ def test_a_target_under_glare_does_not_hand_on_drift(cam):
     glare). Keyframes made from such frames one after another (frames 3, 5 and 8) each handed the
     surroundings' error on, and then a dense match of the glared window agreed with the chain: the
     estimate slid 1 -> 13 px off the target over 16 frames, reported valid with confidence up to
-    0.8. An unverified keyframe makes no further unverified one, a dense match of a glared window
-    carries no frame: no wrong position is reported, the target is tracked while it can be."""
+    0.8. At most two unverified keyframes are made in a row, and a dense match of a glared window
+    against the second carries no frame: no wrong position is reported, the target is tracked
+    while it can be."""
     frames = _eval_frames("rotation", "coffee", 2, 18, cam)
     tr = FeatureTracker()
     assert tr.select(frames[0].image, frames[0].truth_px, WINDOW), tr.failure
@@ -459,4 +460,4 @@ def test_a_target_under_glare_does_not_hand_on_drift(cam):
     assert np.all((errs < 8.0) | ~np.isfinite(errs)), errs.round(2)
     assert np.all(errs[:3] < 2.0), errs.round(2)        # tracked while the target itself is seen
     assert np.sum(errs < 8.0) >= 8, errs.round(2)        # and on its surroundings for a while
-    assert tr.stats["keyframes"] <= 2, tr.stats           # the selection's and one unverified
+    assert tr.stats["keyframes"] <= 3, tr.stats           # the selection's and two unverified

@@ -417,7 +417,8 @@ class _Keyframe:
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
-    seen: bool = True        # the target's own patch was compared (not mostly glare) when it was made
+    unseen: int = 0          # made from a target patch that could not be compared (mostly glare): how
+    # many such keyframes in a row led to it (0: its target patch was compared)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
@@ -1197,9 +1198,11 @@ class FeatureTracker(Tracker):
         if ncc < s.patch_reject_ncc:
             self.stats["covered"] += 1
             return None
-        if key is None and dense is not None and not seen:
-            # A dense match aligns the target window, which is then mostly glare: it measures the
-            # glare and the window's edges, not the target (it drifted with the chain, below).
+        # A dense match of a window that is mostly glare measures the glare and the window's
+        # edges, not the target: against a keyframe that is itself twice removed from a verified
+        # target it is not believed (on seed 2's coffee `rotation` such matches agreed with the
+        # chain for 11 frames while both drifted 4 -> 20 px off the target).
+        if key is None and dense is not None and not seen and ref.unseen >= 2:
             self.stats["inconsistent"] += 1
             return None
         match_conf = conf  # the evidence of the match itself
@@ -1241,21 +1244,21 @@ class FeatureTracker(Tracker):
         # ``weak_keyframes`` in a row (default none: more keep weak texture tracked longer, but
         # drifted into false locks on unseen sequences).
         # A target under glare is unverified (its patch could not be compared): a keyframe made
-        # from it takes the surroundings' word for where the target is. One such keyframe from a
-        # verified one is fine (mucosa `leave`: < 1 px), but not one from another: on seed 2's
-        # coffee `rotation` (target under a glint while the tissue turns) keyframes made that way
-        # on frames 3, 5 and 8 handed a 0.6 px/frame drift on, 1 -> 13 px in 16 frames, reported
-        # valid with confidence up to 0.8.
+        # from it takes the surroundings' word for where the target is. Two such in a row are
+        # fine (mucosa `leave`: < 1 px), a third is not made: on seed 2's coffee `rotation`
+        # (target under a glint while the tissue turns) keyframes made that way on frames 3, 5
+        # and 8 handed a 0.6 px/frame drift on, 1 -> 13 px in 16 frames, reported valid with
+        # confidence up to 0.8.
         weak = match_conf < s.keyframe_min_confidence
         supported = (surrounded and self._in_view(est, inner=True)
                      and ncc >= s.patch_keyframe_ncc and (not weak or self._weak_keys < s.weak_keyframes)
-                     and (seen or ref.seen))
+                     and (seen or ref.unseen < 2))
         # Renew only when chain and keyframe both support this frame (or the chain strongly).
         strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
             kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
-                kf_new.seen = seen
+                kf_new.unseen = 0 if seen else ref.unseen + 1
                 self._recent.append(kf_new)
                 self._key = kf_new
                 self._weak_keys = self._weak_keys + 1 if weak else 0
