@@ -56,8 +56,9 @@ J instead of assuming it, and steers with it:
   (image offset less the modelled own motion) has moved along a clear straight line for the last
   3 s and the offsets are steady, the servo aims that far ahead, by at most 6 px. (Robustness seeds
   0/204/23 + 203/205/7: cases worse than 1.1× PI among drifts 19 -> 8; one case worse by more than
-  15 % + 2 px, a near drift below PI's error: 17 -> 23 px, PI 27. Ungated or uncapped it was worse: near, in a deadband the model does not know, the
-  modelled motion reads as a drift and the lead overshoots.)
+  15 % + 2 px, a near drift below PI's error: 17 -> 23 px, PI 27. Ungated or uncapped it was worse:
+  near, in a deadband the model does not know, the modelled motion reads as a drift and the lead
+  overshoots.)
 
 Tried and worse on the robustness benchmark: extrapolating the target's image velocity over the
 latency whatever the motion (its noise after steps and stick-slip costs more than it gains on
@@ -203,15 +204,15 @@ class AdaptiveController(Controller):
         inflate = 1.0 + self.caution * max(self.cautious_scale / est.gain_scale - 1.0, 0.0)
         j = inflate * self._filled(est.j)
         x_now = x + j @ (self.effective - e_c)
+        # Near (a large J) the cables' stick-slip moves the image in big jumps: push more slowly there.
+        g = cfg.adaptive_servo_gain * min(1.0, math.sqrt(self.prior_scale / (inflate * est.gain_scale)))
+        if cfg.adaptive_drift_lead > 0.0 and self.caution < 0.2:
+            x_now = x_now + self._drift_push(t, g)
         try:
             dm = -np.linalg.solve(j, x_now)
         except np.linalg.LinAlgError:
             return None
-        # Near (a large J) the cables' stick-slip moves the image in big jumps: push more slowly there.
-        g = cfg.adaptive_servo_gain * min(1.0, math.sqrt(self.prior_scale / (inflate * est.gain_scale)))
-        if cfg.adaptive_drift_lead > 0.0 and self.caution < 0.2:
-            dm = dm - np.linalg.solve(j, self._drift_push(t, g))
-        return motor + g * dm + self._across_dead_travel(dm)
+        return motor + g * dm + self._across_dead_travel(dm)   # the base class clips it to the set-point range
 
     def _across_dead_travel(self, dm: np.ndarray) -> np.ndarray:
         """Handle motion (rad) added to cross what the model says is dead travel in the direction of
@@ -224,10 +225,10 @@ class AdaptiveController(Controller):
         if share <= 0.0:
             return np.zeros(2)
         jump = share * self.tip_model.dead_travel(np.sign(dm))
-        return np.sign(jump) * np.minimum(np.abs(jump), np.abs(dm))              # the base class clips it to the set-point range
+        return np.sign(jump) * np.minimum(np.abs(jump), np.abs(dm))
 
     def _drift_push(self, t: float, g: float) -> np.ndarray:
-        """The offset (px) to add to the servo's so a clear steady drift of the target is followed
+        """The offset (px) to add to the predicted one so a clear steady drift of the target is followed
         without lag: the servo lags a target moving at v by v·(latency + frame interval / g)."""
         lead = self.cfg.adaptive_drift_lead * (t - self.capture + self.delay.delay + self.interval / g)
         push = lead * self.drift.velocity

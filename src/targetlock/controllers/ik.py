@@ -108,6 +108,7 @@ class History:
         times = np.atleast_1d(np.asarray(times, dtype=float))
         return np.column_stack([np.interp(times, ts, vs[:, k]) for k in range(vs.shape[1])])
 
+
 class IKController(Controller):
     """Target pixel + depth -> 3D target -> bending angles that centre it -> damped handle setpoint."""
 

@@ -20,6 +20,9 @@ __all__ = ["DriftEstimator"]
 
 
 class DriftEstimator:
+    """The target's own image velocity (px/s) over a sliding window of frames, zero unless it is a
+    clear, steady drift (module docstring)."""
+
     def __init__(self, *, window: float = 3.0, significance: float = 6.0, consistency: float = 0.3,
                  min_scatter: float = 1.0, max_speed: float = 200.0) -> None:
         self.window = window                      # s
@@ -42,8 +45,10 @@ class DriftEstimator:
         return self.velocity
 
     def reset(self) -> None:
+        """Forget the frames (e.g. when the modelled own motion they were read with is replaced)."""
         self.frames.clear()
         self.velocity = np.zeros(2)
+        self.offset_scatter = 0.0
 
     def _estimate(self, j: np.ndarray) -> np.ndarray:
         n = len(self.frames)

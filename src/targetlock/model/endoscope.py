@@ -39,7 +39,7 @@ from ..config import param
 from .drives import DriveParams, drive_step
 
 __all__ = ["EndoscopeParams", "pack_params", "initial_state", "advance", "simulate", "calibrate_handle_radius", "handle_for_tip", "static_gain",
-           "dead_travel",
+           "dead_travel", "friction_normal",
            "FRICTION_MODELS"]
 
 FRICTION_MODELS = ("both-angles", "own-angle")
@@ -207,6 +207,14 @@ def calibrate_handle_radius(e: EndoscopeParams, handle_angle: float = math.radia
     return handle_for_tip(dataclasses.replace(e, handle_radius=1.0), tip_angle) / handle_angle
 
 
+def friction_normal(e: EndoscopeParams, own: float, other: float) -> float:
+    """Coulomb friction torque N (N·m) of an axis at tip angle ``own`` (rad), the other axis at ``other``
+    (rad): the kernel's friction law for ``e.friction_model``."""
+    if e.friction_model == "both-angles":
+        return e.mu_n * (abs(own) + abs(other) + e.friction_offset)
+    return e.mu_n * abs(own)
+
+
 def dead_travel(e: EndoscopeParams, handle: np.ndarray, tip: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Handle travel (rad, per axis, signed) left before a tip at rest at ``tip`` (rad) starts to move
     when the handle, now at ``handle`` (rad), turns in ``direction`` (sign per axis; 0: none): the
@@ -216,14 +224,13 @@ def dead_travel(e: EndoscopeParams, handle: np.ndarray, tip: np.ndarray, directi
     Force balance at break-away in direction s: c·T(d) − K_tip·Phi = s·N, with T the pull-only cable
     pair's net tension at stroke d = r_h·theta − c·Phi (the kernel's force law)."""
     tip = np.asarray(tip, dtype=float)
-    normal = e.mu_n * (abs(tip[0]) + abs(tip[1]) + e.friction_offset) if e.friction_model == "both-angles" else None
     c, kc, s0 = e.cable_arm, e.cable_stiffness, e.cable_slack
     out = np.zeros(2)
     for a in range(2):
         s = float(np.sign(direction[a]))
         if s == 0.0:
             continue
-        n = normal if normal is not None else e.mu_n * abs(tip[a])
+        n = friction_normal(e, tip[a], tip[1 - a])
         t = (e.tip_stiffness * tip[a] + s * n) / (c * kc)          # net cable stretch needed (m)
         if s0 >= 0.0:                                                # one cable taut, the other slack
             d = s0 + t if t > 0.0 else -s0 + t
@@ -243,7 +250,7 @@ def handle_for_tip(e: EndoscopeParams, tip_angle: float) -> float:
         return 0.0
     sign = 1.0 if tip_angle > 0 else -1.0
     phi = abs(tip_angle)
-    normal = e.mu_n * (phi + e.friction_offset) if e.friction_model == "both-angles" else e.mu_n * phi
+    normal = friction_normal(e, phi, 0.0)
     tension = (e.tip_stiffness * phi + normal) / e.cable_arm
     stroke = tension / e.cable_stiffness + e.cable_arm * phi + e.cable_slack
     if e.cable_slack < 0:  # both cables taut near the centre share the load

@@ -883,7 +883,7 @@ class FeatureTracker(Tracker):
         ok = ok_ref & ok_cur
         if np.count_nonzero(ok) < 0.3 * ok.size:
             return 1.0, False, False  # mostly glare: nothing to compare (the glare test is elsewhere)
-        out = (*self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok), True)
+        out = (*self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok)[:2], True)
         if out[0] >= self.settings.patch_keyframe_ncc or motion_px is None:
             return out
         # Motion blur smears the patch along the motion (up to the whole frame interval's motion
@@ -908,32 +908,30 @@ class FeatureTracker(Tracker):
             refb = cv2.filter2D(ref, -1, k, borderType=cv2.BORDER_REPLICATE)
             local = cv2.blur(refb * refb, (9, 9))
             ref_local_b = np.maximum(local - nv_ref, 0.25 * local) + 1.0
-            if self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok)[0] < s.patch_keyframe_ncc:
+            score, _, ncc = self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok)
+            if score < s.patch_keyframe_ncc:
                 continue
             # The same tissue smeared: accepted, but no keyframe is made from it (its own
             # correlation may be low: it is not registered well enough to hand on).
-            ncc = self._patch_score(refb, ref_local_b, nv_ref, cur, nv_cur, ok, raw=True)[0]
             return min(max(ncc, s.patch_reject_ncc), 0.99 * s.patch_keyframe_ncc), True, True
         return out
 
     def _patch_score(self, ref: np.ndarray, ref_local: np.ndarray, nv_ref: float, cur: np.ndarray, nv_cur: float,
-                     ok: np.ndarray, raw: bool = False) -> tuple[float, bool]:
+                     ok: np.ndarray) -> tuple[float, bool, float]:
         """The target-patch comparison of :meth:`_patch_similarity` of the band-passed patches
-        ``ref`` and ``cur`` (noise variances ``nv_ref``, ``nv_cur``) over ``ok``; ``raw``: their
-        correlation only."""
+        ``ref`` and ``cur`` (noise variances ``nv_ref``, ``nv_cur``) over ``ok``: its score, whether it
+        passed only as a blurred view, and the patches' own correlation (1 for a textureless target)."""
         a, b = ref[ok], cur[ok]
         a = a - a.mean()
         b = b - b.mean()
         e_ref = float(np.dot(a, a))
         e_ref = max(e_ref - nv_ref * a.size, 0.25 * e_ref)
         if e_ref < 4.0 * a.size:  # the target itself has no texture (std < 2 of 40): no check
-            return 1.0, False
+            return 1.0, False, 1.0
         e_cur = float(np.dot(b, b))
         e_cur = max(e_cur - nv_cur * b.size, 0.25 * e_cur)
         den = math.sqrt(e_cur * e_ref)
         ncc = min(1.0, float(np.dot(a, b)) / den) if den > 1e-3 else 0.0
-        if raw:
-            return ncc, False
         # Decorrelated *and* with another texture energy, or with texture gone from part of the
         # patch: something else is there (an instrument's edge adds structure, its smooth body
         # removes it). Decorrelation at equal, evenly spread energy is only a slightly
@@ -945,10 +943,10 @@ class FeatureTracker(Tracker):
         vanished = float(np.mean(local < 0.1 * np.partition(local, k)[k]))
         ratio = e_cur / e_ref
         if vanished < 0.25 and 1.0 / self.settings.patch_energy_ratio <= ratio <= self.settings.patch_energy_ratio:
-            return max(ncc, self.settings.patch_keyframe_ncc), False
+            return max(ncc, self.settings.patch_keyframe_ncc), False, ncc
         if vanished < 0.25 and self.settings.patch_blur_energy <= ratio < 1.0 and ncc >= self.settings.patch_blur_ncc:
-            return max(ncc, self.settings.patch_keyframe_ncc), ncc < self.settings.patch_keyframe_ncc
-        return ncc, False
+            return max(ncc, self.settings.patch_keyframe_ncc), ncc < self.settings.patch_keyframe_ncc, ncc
+        return ncc, False, ncc
 
     def _match_keyframe(self, base: _View, kf: _Keyframe, key_to_pred: np.ndarray):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform.
