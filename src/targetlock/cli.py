@@ -220,6 +220,8 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="robustness: seed of the random set (default 0)")
     p.add_argument("--workers", type=int, metavar="N", help="robustness: run the cases on a local Dask cluster of N "
                                                             "worker processes (default: in this process)")
+    p.add_argument("--controllers", metavar="LIST", help="robustness: comma-separated controllers to run (default: all); "
+                                                         "kind[+source], e.g. adaptive,adaptive+oracle,adaptive+oracle-endoscope")
 
 
 @command("bench", "benchmarks: model, loop, vision, robustness, gym")(_bench_options)
@@ -235,8 +237,9 @@ def _bench(args: argparse.Namespace) -> int:
         res = bench_loop()
         print(f"loop: real-time factor {res['realtime_factor']:.0f}; step of ik {res['ik_step_ms']:.4f} ms, of adaptive {res['adaptive_step_ms']:.4f} ms")
     elif args.what == "robustness":
-        from .experiments.robustness import bench_robustness
-        res = bench_robustness(args.cases, args.seed, workers=args.workers)
+        from .experiments.robustness import BENCH_CONTROLLERS, bench_robustness, parse_controllers
+        controllers = parse_controllers(args.controllers) if args.controllers is not None else BENCH_CONTROLLERS
+        res = bench_robustness(args.cases, args.seed, workers=args.workers, controllers=controllers)
     elif args.what == "gym":
         from .bench import bench_gym
         res = bench_gym()

@@ -40,3 +40,16 @@ def test_the_knowledge_section_is_validated_and_kept_in_the_run_config():
     cfg = from_dict(RunConfig, {"knowledge": {"depth": 0.02}})
     assert cfg.knowledge.depth == 0.02 and dataclasses.asdict(cfg)["twin"]["scene"]["distance"] == 0.12
     assert resolve_knowledge(cfg.knowledge, cfg.twin).depth == 0.02
+
+
+def test_a_partial_oracle_hands_over_that_item_only_and_says_so():
+    truth = plant()
+    nominal = resolve_knowledge(KnowledgeConfig(), truth)
+    got = {item: resolve_knowledge(KnowledgeConfig(source=f"oracle-{item}"), truth)
+           for item in ("endoscope", "latency", "depth", "camera")}
+    assert got["endoscope"].endoscope == truth.endoscope and got["endoscope"].latency == nominal.latency
+    assert got["latency"].latency == 0.25 and got["latency"].endoscope == nominal.endoscope
+    assert got["depth"].depth == 0.03 and got["depth"].camera == nominal.camera
+    assert got["camera"].camera.fx == 350.0 and got["camera"].depth == nominal.depth
+    for item, k in got.items():
+        assert k.label.startswith(f"oracle {item} only"), k.label

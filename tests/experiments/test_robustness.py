@@ -61,3 +61,20 @@ def test_the_benchmark_on_dask_workers_gives_the_same_scores():
     dask = run_robustness(2, seed=1, controllers=("pi", "pi-hc"), seconds=3.0, workers=1)
     for c in ("pi", "pi-hc"):
         assert [r["rms_px"] for r in dask["per_case"][c]] == [r["rms_px"] for r in here["per_case"][c]]
+
+
+def test_controller_names_take_a_knowledge_source_and_bad_ones_name_what_is_allowed(tmp_path):
+    import pytest
+
+    from targetlock.config import ConfigError
+    from targetlock.experiments.robustness import case_config, parse_controllers
+    assert parse_controllers("pi, adaptive+oracle-endoscope") == ("pi", "adaptive+oracle-endoscope")
+    for bad in ("adaptive+truth", "mpc", ""):
+        with pytest.raises(ConfigError, match="--controllers"):
+            parse_controllers(bad)
+    case = draw_cases(1, seed=0)[0]
+    path = tmp_path / "path.csv"
+    path.write_text("t,x,y,z\n" + "\n".join(",".join(map(str, row)) for row in case.waypoints.tolist()) + "\n")
+    cfg = case_config(case, "adaptive+oracle-depth", path, 3.0, 0)
+    assert cfg.controller.kind == "adaptive" and cfg.knowledge.source == "oracle-depth"
+    assert case_config(case, "pi", path, 3.0, 0).knowledge.source == "nominal"

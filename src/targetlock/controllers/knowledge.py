@@ -4,7 +4,9 @@ A real lab knows its endoscope only roughly: the nominal ``calibrated`` preset, 
 latency (0.4 s) and working distance (12 cm), and the camera's nominal intrinsics. The controllers
 get exactly that (:class:`KnowledgeConfig`, ``source = "nominal"``), never silently the twin's truth.
 ``source = "oracle"`` hands over the simulated plant's true parameters instead; every result made that
-way is labelled "oracle" (the run summary's ``knowledge`` field).
+way is labelled "oracle" (the run summary's ``knowledge`` field). ``"oracle-endoscope"``,
+``"oracle-latency"``, ``"oracle-depth"`` and ``"oracle-camera"`` (focal lengths) hand over that one item
+of the truth and the nominal rest: which missing knowledge costs a controller how much (labelled so).
 """
 from __future__ import annotations
 
@@ -18,14 +20,16 @@ from ..model.twin import PRESETS, TwinConfig, twin_config
 
 __all__ = ["KnowledgeConfig", "Knowledge", "resolve_knowledge", "nominal_knowledge", "KNOWLEDGE_SOURCES"]
 
-KNOWLEDGE_SOURCES = ("nominal", "oracle")
+ORACLE_ITEMS = ("endoscope", "latency", "depth", "camera")
+KNOWLEDGE_SOURCES = ("nominal", "oracle") + tuple(f"oracle-{item}" for item in ORACLE_ITEMS)
 
 
 @dataclass(frozen=True)
 class KnowledgeConfig:
     """The controller's own assumptions about endoscope, camera, latency and target depth."""
     source: str = param("nominal", choices=KNOWLEDGE_SOURCES,
-                        doc="'nominal': the values below; 'oracle': the simulated plant's truth (labelled oracle)")
+                        doc="'nominal': the values below; 'oracle': the simulated plant's truth (labelled oracle); "
+                            "'oracle-endoscope' / -latency / -depth / -camera: that item of the truth, the rest nominal")
     preset: str = param("calibrated", choices=PRESETS, doc="endoscope preset the controller assumes")
     latency: float = param(0.4, unit="s", lo=0.0, hi=5.0,
                            doc="assumed video latency (report: 0.4 s); frames are stamped with it, as a rig stamps them")
@@ -40,7 +44,7 @@ class Knowledge:
     endoscope: EndoscopeParams
     camera: CameraParams          # intrinsics assumed; its ``latency`` is the assumed latency
     depth: float                  # m
-    source: str                   # "nominal" or "oracle"
+    source: str                   # one of KNOWLEDGE_SOURCES
     preset: str                   # the endoscope preset these parameters came from
 
     @property
@@ -52,22 +56,29 @@ class Knowledge:
         """One line saying which knowledge this is (for summaries and tables)."""
         if self.source == "oracle":
             return "oracle (the plant's true parameters)"
-        return (f"nominal (preset {self.preset}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, "
-                f"f {self.camera.fx:g} px)")
+        nominal = (f"preset {self.preset}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, "
+                   f"f {self.camera.fx:g} px")
+        if self.source.startswith("oracle-"):
+            item = self.source.removeprefix("oracle-")
+            return f"oracle {item} only (the plant's true {item}; otherwise {nominal})"
+        return f"nominal ({nominal})"
 
 
 def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     """The assumptions a controller gets. Only the image size and principal point are taken from the
     plant's camera (they are read off the image itself); everything else is the configured nominal,
-    unless ``k.source == "oracle"``."""
+    unless ``k.source`` is ``"oracle"`` (all of the plant's truth) or ``"oracle-<item>"`` (that item's)."""
     if k.source == "oracle":
         return Knowledge(endoscope=plant.endoscope, camera=plant.camera, depth=plant.scene.distance, source="oracle",
                          preset=plant.preset)
-    endoscope = twin_config(k.preset).endoscope
+    item = k.source.removeprefix("oracle-") if k.source.startswith("oracle-") else ""
+    endoscope = plant.endoscope if item == "endoscope" else twin_config(k.preset).endoscope
+    fx, fy = (plant.camera.fx, plant.camera.fy) if item == "camera" else (k.fx, k.fy)
     camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
-                                 cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps,
-                                 fx=k.fx, fy=k.fy, latency=k.latency)
-    return Knowledge(endoscope=endoscope, camera=camera, depth=k.depth, source="nominal", preset=k.preset)
+                                 cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps, fx=fx, fy=fy,
+                                 latency=plant.camera.latency if item == "latency" else k.latency)
+    return Knowledge(endoscope=endoscope, camera=camera, depth=plant.scene.distance if item == "depth" else k.depth,
+                     source=k.source, preset=plant.preset if item == "endoscope" else k.preset)
 
 
 def nominal_knowledge(plant: TwinConfig | None = None) -> Knowledge:

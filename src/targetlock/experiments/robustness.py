@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..controllers import ControllerConfig, KnowledgeConfig
+from ..controllers import CONTROLLERS, ControllerConfig, KnowledgeConfig
+from ..controllers.knowledge import KNOWLEDGE_SOURCES
 from ..loop.runner import LoopConfig
 from ..model.kinematics import tip_pose
 from ..model.twin import PRESETS, twin_config
@@ -153,13 +154,15 @@ def draw_cases(n: int, seed: int, seconds: float = 12.0) -> list[Case]:
 
 
 def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int) -> RunConfig:
-    """The run of ``controller`` on ``case`` (name ``kind+oracle`` for the plant's truth)."""
-    kind, _, oracle = controller.partition("+")
+    """The run of ``controller`` on ``case``: a controller kind, with ``+source`` a knowledge source
+    (:data:`~targetlock.controllers.knowledge.KNOWLEDGE_SOURCES`, e.g. ``adaptive+oracle`` for the
+    plant's truth, ``adaptive+oracle-endoscope`` for its endoscope only)."""
+    kind, _, source = controller.partition("+")
     twin = twin_config(case.preset, {"endoscope": case.endoscope, "drive": case.drive, "camera": case.camera,
                                      "scene": {"path": "waypoints", "waypoints_file": str(waypoints_file),
                                                "distance": case.distance, "start_tip_deg": case.start_tip_deg}})
     return RunConfig(twin=twin, controller=ControllerConfig(kind=kind),
-                     knowledge=KnowledgeConfig(source="oracle" if oracle == "oracle" else "nominal"),
+                     knowledge=KnowledgeConfig(source=source or "nominal"),
                      loop=LoopConfig(seconds=seconds, metrics_after=1.0),
                      tracker=ObservationNoise(noise_px=case.noise_px, drop_probability=case.drop_probability,
                                               seed=seed + case.index),
@@ -262,10 +265,11 @@ def summarise(per: dict[str, list[dict]]) -> dict:
 
 
 def format_table(summary: dict) -> list[str]:
-    lines = [f"{'controller':<18} {'rms med':>7} {'xPI med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
+    w = max([18] + [len(c) for c in summary])
+    lines = [f"{'controller':<{w}} {'rms med':>7} {'xPI med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
              f"{'left img':>8} {'PI kept':>7} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21}"]
     for c, s in summary.items():
-        lines.append(f"{c:<18} {s['rms_median']:>7.1f} {s['median_ratio_of_medians']:>7.2f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
+        lines.append(f"{c:<{w}} {s['rms_median']:>7.1f} {s['median_ratio_of_medians']:>7.2f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
                      f"{s['peak_median']:>8.0f} {s['peak_p95']:>6.0f} {s['peak_worst']:>6.0f} | "
                      f"{100 * s['left_image_fraction']:>7.0f}% {s['left_where_pi_kept']:>7d} {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
                      f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
@@ -273,7 +277,22 @@ def format_table(summary: dict) -> list[str]:
     return lines
 
 
-def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = None) -> dict:
+def parse_controllers(names: str) -> tuple[str, ...]:
+    """A comma-separated list of benchmark controller names (``kind`` or ``kind+source``), checked."""
+    from ..config import ConfigError
+    out = tuple(n.strip() for n in names.split(",") if n.strip())
+    if not out:
+        raise ConfigError("--controllers is empty; give e.g. pi,adaptive,adaptive+oracle")
+    for name in out:
+        kind, plus, source = name.partition("+")
+        if kind not in CONTROLLERS or (plus and source not in KNOWLEDGE_SOURCES):
+            raise ConfigError(f"--controllers: {name!r}; allowed: a controller {', '.join(CONTROLLERS)}, optionally "
+                              f"+ a knowledge source {', '.join(s for s in KNOWLEDGE_SOURCES if s != 'nominal')}")
+    return out
+
+
+def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = None,
+                     controllers: tuple[str, ...] = BENCH_CONTROLLERS) -> dict:
     """``targetlock bench robustness``: print the table; returns the summary (the JSON line)."""
     from ..config import ConfigError
     if not 1 <= n_cases <= 10000:
@@ -282,9 +301,9 @@ def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = Non
         raise ConfigError(f"--seed = {seed}; allowed: [0, 2^63)")
     if workers is not None and not 1 <= workers <= 512:
         raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
-    r = run_robustness(n_cases, seed, workers=workers)
+    r = run_robustness(n_cases, seed, controllers=controllers, workers=workers)
     print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
-          f"unless '+oracle'; rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
+          f"unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
     print("\n".join(format_table(r["summary"])))
     print(f"({r['wall_seconds']:.0f} s " + (f"on {workers} Dask workers)" if workers else "on one core)"))
     return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
