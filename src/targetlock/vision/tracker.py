@@ -319,6 +319,13 @@ class TrackerSettings:
                                        doc="largest bright blob that is a glint; larger bright areas: only clipped pixels")
     highlight_max_share: float = param(0.25, lo=0.0, hi=1.0,
                                        doc="largest share of a region masked as highlight (the brightest are kept)")
+    corner_noise_floor: float = param(4.0, lo=0.0, hi=1000.0,
+                                      doc="a corner whose strength (smallest eigenvalue of the 5 px structure tensor of "
+                                          "the normalised gray) is below this x the region's noise variance is noise "
+                                          "(twice the strongest that pure noise makes); 0: every corner counts")
+    corner_noise_level: float = param(3.0, unit="levels", lo=0.0, hi=255.0,
+                                      doc="sensor noise (std, 8-bit gray levels of the frame) above which the "
+                                          "selection counts only corners above corner_noise_floor")
     patch_reject_ncc: float = param(0.2, lo=-1.0, hi=1.0,
                                     doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
     patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
@@ -352,6 +359,10 @@ class TrackerSettings:
                                        doc="least normalised correlation of a dense re-acquisition candidate")
     dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
                                         doc="least ratio of the candidate's correlation to the best other place's")
+    dense_unique_ncc: float = param(0.6, lo=-1.0, hi=1.0,
+                                    doc="a keyframe whose band-passed target window correlates this much with its own "
+                                        "region a quarter window or more away (an edge, a repeated texture) is not "
+                                        "searched for densely")
     dense_presearch: bool = param(True, doc="pre-search the frame densely at quarter resolution: a template is "
                                             "searched at half resolution (which alone decides) only where it "
                                             "stands out there (saves CPU time while lost)")
@@ -382,6 +393,7 @@ class _View:
     zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
     sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
+    gain: float = 1.0               # gray = gain * raw + zero
 
     _LAPLACE = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
@@ -423,6 +435,8 @@ class _Keyframe:
     # energy), made on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
+    self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
+    # the target (an edge or a repeated texture matches elsewhere too), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -533,7 +547,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]))
+        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]), gain=alpha)
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -564,7 +578,18 @@ class FeatureTracker(Tracker):
     def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
                   masked: bool = True) -> np.ndarray:
         """Corners (frame px) within a square of half-side ``half`` px around ``centre`` in a crop view
-        (``quality``: goodFeaturesToTrack level, default the setting; ``masked``: not on highlights)."""
+        (``quality``: goodFeaturesToTrack level, default the setting; ``masked``: not on highlights);
+        only those above the sensor noise when there are enough of them (:meth:`_corners`)."""
+        return self._corners(view, centre, half, quality, masked)[0]
+
+    def _corners(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
+                 masked: bool = True) -> tuple[np.ndarray, int]:
+        """:meth:`_features` and how many of them stand above the sensor noise: a corner whose
+        Shi-Tomasi strength (smallest eigenvalue) is below ``corner_noise_floor`` x the noise
+        variance of the region is what noise alone makes (fresh on every frame, nothing the flow
+        can follow; on a smooth target under strong noise nearly every corner found is one). When
+        at least 1.5 x ``min_inliers`` corners are above it, only those are returned; else all (weak
+        texture: the corners there are all that can be followed)."""
         s = self.settings
         h, w = view.gray.shape
         off = view.to_frame[:2, 2]
@@ -572,7 +597,7 @@ class FeatureTracker(Tracker):
         x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
         x1, y1 = int(min(w, c[0] + half + 1)), int(min(h, c[1] + half + 1))
         if x1 <= x0 or y1 <= y0:
-            return np.zeros((0, 2), np.float32)
+            return np.zeros((0, 2), np.float32), 0
         mask = np.zeros((h, w), np.uint8)
         ox, oy = int(off[0]), int(off[1])
         mask[y0:y1, x0:x1] = self._fov[oy + y0:oy + y1, ox + x0:ox + x1]
@@ -581,8 +606,16 @@ class FeatureTracker(Tracker):
         pts = cv2.goodFeaturesToTrack(view.gray, s.max_features, quality or s.feature_quality,
                                       s.min_feature_distance_px, mask=mask, blockSize=5)
         if pts is None:
-            return np.zeros((0, 2), np.float32)
-        return pts.reshape(-1, 2) + off.astype(np.float32)
+            return np.zeros((0, 2), np.float32), 0
+        pts = pts.reshape(-1, 2)
+        if s.corner_noise_floor <= 0.0 or view.noise() < s.corner_noise_level * view.gain:
+            return pts + off.astype(np.float32), len(pts)
+        # the corner strength where the corners are (the window plus the 3 px the 5 px block reaches)
+        bx0, by0 = max(0, x0 - 3), max(0, y0 - 3)
+        eig = cv2.cornerMinEigenVal(view.gray[by0:min(h, y1 + 3), bx0:min(w, x1 + 3)].astype(np.float32), 5, 3)
+        q = np.round(pts).astype(int) - (bx0, by0)
+        strong = eig[q[:, 1], q[:, 0]] > s.corner_noise_floor * view.noise() ** 2
+        return pts + off.astype(np.float32), int(np.count_nonzero(strong))
 
     # ------------------------------------------------------------- estimation
     def _flow(self, a: _View, b: _View, pts: np.ndarray, guess: np.ndarray, levels: int):
@@ -729,14 +762,14 @@ class FeatureTracker(Tracker):
             window = min(2048.0, grow * float(window_px))
             self._setup_window(frame_bgr, window)
             view = self._crop(frame_bgr, p)
-            pts = self._features(view, p, 0.5 * self._window, quality, masked)
+            pts, n_strong = self._corners(view, p, 0.5 * self._window, quality, masked)
             best = max(best, len(pts))
-            if len(pts) >= s.min_inliers and (found is None or len(pts) >= margin):
-                found = (window, quality, masked, view, pts)
-            if found is not None and len(found[4]) >= margin:
+            if len(pts) >= s.min_inliers and (found is None or n_strong >= margin):
+                found = (window, quality, masked, view, pts, n_strong)
+            if found is not None and found[5] >= margin:
                 break
         if found is not None:
-            window, quality, masked, view, pts = found
+            window, quality, masked, view, pts, _ = found
             if window != self._window:
                 self._setup_window(frame_bgr, window)
             kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
@@ -1420,6 +1453,27 @@ class FeatureTracker(Tracker):
         img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
         return img, fov, np.array([x0, y0], float)
 
+    def _self_similarity(self, kf: _Keyframe) -> float:
+        """How well keyframe ``kf``'s band-passed target window matches its own surroundings (the
+        keyframe's region, half resolution) more than a quarter window away from itself: a window
+        whose texture is one edge (a rim, a fold) or repeats matches there too, and a dense search
+        of the whole frame would find another place along that edge as readily as the target
+        (coffee `lighting`: a window on a cup's rim re-acquired 82 px along the rim)."""
+        if kf.self_ncc is None:
+            bp, valid = self._kf_band(kf)
+            img = _halved(np.where(valid > 0, bp, np.float32(0.0)))
+            half = int(round(0.25 * self._window))
+            t = np.round(0.5 * (kf.target - kf.view.to_frame[:2, 2])).astype(int)
+            h, w = img.shape
+            if not (half <= t[0] < w - half and half <= t[1] < h - half):
+                kf.self_ncc = 0.0
+                return kf.self_ncc
+            tpl = img[t[1] - half:t[1] + half + 1, t[0] - half:t[0] + half + 1]
+            score = cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)
+            cv2.circle(score, (int(t[0] - half), int(t[1] - half)), max(3, half // 2), -2.0, -1)
+            kf.self_ncc = float(score.max())
+        return kf.self_ncc
+
     def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
         resolution, refined at full resolution), with its keyframe and correlation, if it stands
@@ -1433,7 +1487,8 @@ class FeatureTracker(Tracker):
             for kf in dict.fromkeys(kfs):  # unique, in order
                 small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
                 # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
-                if small is not None and full is not None and full[1] >= 2.25:
+                if small is not None and full is not None and full[1] >= 2.25 and \
+                        self._self_similarity(kf) < s.dense_unique_ncc:
                     self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
         if not self._dense_tpl:
             return None
