@@ -433,6 +433,7 @@ class _Keyframe:
     # many such keyframes in a row led to it (0: its target patch was compared)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
+    patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
     self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
@@ -882,12 +883,9 @@ class FeatureTracker(Tracker):
         itself unverified). ``motion_px``: the target's motion per frame interval (px); a patch
         that decorrelated is then also compared with the keyframe's smeared along it (motion blur),
         and passing that way scores just below ``patch_keyframe_ncc`` (accepted, no keyframe)."""
-        half = max(7, int(round(0.2 * self._window)))
-        side = 2 * half + 1
-        to_patch = _translation(kf.target - half)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
-        def sample(v: _View, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def sample(v: _View, m: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:
             g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
@@ -901,21 +899,44 @@ class FeatureTracker(Tracker):
             level = float(np.mean(g[ok])) - v.zero if ok.any() else 0.0
             return _band(g, 1.0, 4.0), ok, level
 
-        # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
-        # taken out, so strong noise on weak texture does not read as another texture.
-        if kf.patch is None:
-            ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-            nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
-            local = cv2.blur(ref * ref, (9, 9))
-            kf.patch = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
-        ref, ok_ref, ref_local, nv_ref, ref_level = kf.patch
-        cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
-        gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # this patch in the keyframe's contrast
-        cur = cur * np.float32(gain)
-        nv_cur = self._NOISE_BAND * (gain * view.noise()) ** 2
-        ok = ok_ref & ok_cur
+        def patches(half: int, wide: bool):
+            """(keyframe's patch: band-passed, usable mask, local energy, noise variance, level; this
+            frame's: band-passed in the keyframe's contrast, noise variance; both usable) of side 2 half + 1."""
+            side = 2 * half + 1
+            to_patch = _translation(kf.target - half)
+            # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
+            # taken out, so strong noise on weak texture does not read as another texture.
+            cached = kf.patch_wide if wide else kf.patch
+            if cached is None:
+                ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch, side)
+                nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
+                local = cv2.blur(ref * ref, (9, 9))
+                cached = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
+                if wide:
+                    kf.patch_wide = cached
+                else:
+                    kf.patch = cached
+            ref, ok_ref, ref_local, nv_ref, ref_level = cached
+            cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch, side)
+            gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # in the keyframe's contrast
+            return ref, ref_local, nv_ref, cur * np.float32(gain), self._NOISE_BAND * (gain * view.noise()) ** 2, \
+                ok_ref & ok_cur
+
+        ref, ref_local, nv_ref, cur, nv_cur, ok = patches(max(7, int(round(0.2 * self._window))), False)
         if np.count_nonzero(ok) < 0.3 * ok.size:
-            return 1.0, False, False  # mostly glare: nothing to compare (the glare test is elsewhere)
+            # Mostly glare: the target itself cannot be compared (the glare test is elsewhere). Its
+            # whole window still can: when that matches the keyframe's, this view is registered
+            # where the keyframe was (a keyframe made from it hands on no error); else it stays
+            # unverified (coffee `leave`: the target on a glossy spoon, under glints for 10 frames,
+            # made no keyframe after the second such one, and the keyframe flow, distorted towards
+            # the edge of the view, lost it while the chain still followed it).
+            wide = patches(int(0.5 * self._window), True)
+            usable = wide[5]
+            # its own correlation (not the energy rules' pass), and only a textured window (band-passed
+            # std >= 2 of 40: a smooth one would "match" anywhere)
+            seen = (np.count_nonzero(usable) >= 0.3 * usable.size and float(np.std(wide[0][usable])) >= 2.0 and
+                    self._patch_score(*wide)[2] >= self.settings.patch_keyframe_ncc)
+            return 1.0, False, seen
         out = (*self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok)[:2], True)
         if out[0] >= self.settings.patch_keyframe_ncc or motion_px is None:
             return out
