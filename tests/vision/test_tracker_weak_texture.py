@@ -77,3 +77,35 @@ def test_dense_reacquisition_searches_only_a_distinctive_window(cam, sel_pose, m
     else:
         assert tracker._self_similarity(tracker._anchor) < tracker.settings.dense_unique_ncc
         assert found is not None and np.hypot(*(found[0] - frames[1].truth_px)) < 3.0
+
+
+def _glared(img: np.ndarray, centre) -> np.ndarray:
+    """``img`` with a saturated white glint (radius 16 px) over the point ``centre``."""
+    import cv2
+    out = img.copy()
+    cv2.circle(out, tuple(int(round(v)) for v in centre), 16, (255, 255, 255), -1, cv2.LINE_AA)
+    return out
+
+
+def test_target_under_glare_is_verified_by_its_window(cam, sel_pose, mucosa_target):
+    """A glint covers the target's own patch, so it cannot be compared with the keyframe's. The
+    target's whole window still can: when the tissue around it matches the keyframe, the view counts
+    as verified (keyframes may be made from it: a target on glossy tissue lost its keyframes after
+    two such views and then the target); when something else is there, it does not."""
+    from targetlock.vision.tracker import _translation
+    r = Renderer(cam, RenderSettings(specular_strength=0.0), mucosa_target, seed=5)
+    p_sel = (0.021, -0.013)
+    f0, f1 = (r.render(np.eye(4), sel_pose((dx, 0.001, 0.05), p_sel), point_m=p_sel) for dx in (0.0, 0.0004))
+    tracker = FeatureTracker()
+    assert tracker.select(_glared(f0.image, f0.truth_px), f0.truth_px, WINDOW)
+    key_to_frame = _translation(f1.truth_px - f0.truth_px)
+    same = _glared(f1.image, f1.truth_px)
+    ncc, _, seen = tracker._patch_similarity(tracker._crop(same, f1.truth_px), tracker._anchor, key_to_frame)
+    assert seen and ncc == 1.0
+    # other tissue around the glint (the window's content from 150 px away): not verified
+    other = f1.image.copy()
+    x, y = np.round(f1.truth_px).astype(int)
+    other[y - 45:y + 46, x - 45:x + 46] = f1.image[y - 45:y + 46, x - 195:x - 104]
+    other = _glared(other, f1.truth_px)
+    _, _, seen = tracker._patch_similarity(tracker._crop(other, f1.truth_px), tracker._anchor, key_to_frame)
+    assert not seen
