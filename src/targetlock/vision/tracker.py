@@ -326,6 +326,9 @@ class TrackerSettings:
     corner_noise_level: float = param(3.0, unit="levels", lo=0.0, hi=255.0,
                                       doc="sensor noise (std, 8-bit gray levels of the frame) above which the "
                                           "selection counts only corners above corner_noise_floor")
+    denoise_px: float = param(1.0, unit="px", lo=0.0, hi=10.0,
+                              doc="Gaussian sigma the regions are smoothed with before the optical flow when the "
+                                  "sensor noise at selection is above corner_noise_level; 0: never")
     patch_reject_ncc: float = param(0.2, lo=-1.0, hi=1.0,
                                     doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
     patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
@@ -371,6 +374,9 @@ class TrackerSettings:
     dense_presearch_lead: float = param(1.15, lo=1.0, hi=100.0,
                                         doc="least quarter-resolution lead (best place / best other place) for a "
                                             "template's half-resolution search")
+    dense_confirm_lead: float = param(1.3, lo=1.0, hi=100.0,
+                                      doc="least lead (as dense_reacquire_lead) of a candidate found again on the next "
+                                          "frame where the tissue around it went")
     dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
                                     doc="a dense candidate is accepted when the next frame finds it again where the "
                                         "tissue around it moved, within this distance")
@@ -475,6 +481,7 @@ class FeatureTracker(Tracker):
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
+        self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self.selection: dict | None = None
@@ -560,7 +567,13 @@ class FeatureTracker(Tracker):
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         fov = self._fov[y0:y0 + side, x0:x0 + side]
-        return self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0)))
+        return self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+
+    def _smoothed(self, view: _View) -> _View:
+        """``view`` with its gray smoothed when the sensor is noisy (``denoise_px``, set at selection)."""
+        if self._smooth > 0.0:
+            view.gray = cv2.GaussianBlur(view.gray, (0, 0), self._smooth)
+        return view
 
     def _warp(self, base: _View, local_to_frame: np.ndarray) -> _View:
         """The preprocessed region ``base`` resampled through ``local_to_frame`` (3x3), so it lines
@@ -574,7 +587,7 @@ class FeatureTracker(Tracker):
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
         fov = cv2.warpAffine(self._fov, local_to_frame[:2], size, flags=cv2.INTER_NEAREST | inv,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return self._normalise(raw, fov, sat, local_to_frame.copy())
+        return self._smoothed(self._normalise(raw, fov, sat, local_to_frame.copy()))
 
     def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
                   masked: bool = True) -> np.ndarray:
@@ -745,6 +758,7 @@ class FeatureTracker(Tracker):
             return False
         self._fov_half = self._fov_quarter = None
         self._box = None
+        self._smooth = 0.0
         self._pos = p.copy()
         if not self._in_view(p):
             self.failure = "point is outside the endoscope's field of view (or on its edge)"
@@ -773,6 +787,16 @@ class FeatureTracker(Tracker):
             window, quality, masked, view, pts, _ = found
             if window != self._window:
                 self._setup_window(frame_bgr, window)
+            if s.denoise_px > 0.0 and view.noise() >= s.corner_noise_level * view.gain:
+                # A noisy sensor: every region is smoothed before the flow (the noise is fresh on
+                # every frame, nothing to follow); the corners are taken from the smoothed view.
+                self._smooth = s.denoise_px
+                smooth = self._crop(frame_bgr, p)
+                spts = self._features(smooth, p, 0.5 * self._window, quality, masked)
+                if len(spts) >= s.min_inliers:
+                    view, pts = smooth, spts
+                else:
+                    self._smooth = 0.0
             kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
             self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
                               "highlights_masked": masked, "features": len(pts)}
@@ -1495,13 +1519,15 @@ class FeatureTracker(Tracker):
             kf.self_ncc = float(score.max())
         return kf.self_ncc
 
-    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
+    def _dense_search(self, frame: np.ndarray, lead: float | None = None) -> tuple[np.ndarray, _Keyframe, float, float] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
         resolution, refined at full resolution), with its keyframe and correlation, if it stands
         out: correlation >= ``dense_reacquire_ncc`` and ``dense_reacquire_lead`` times that
-        of any other place. Glints are filled smoothly before band-passing, so a glint
-        (which stays put in the image while the tissue moves) cannot be matched."""
+        of any other place (``lead``: another least ratio). Glints are filled smoothly before band-passing,
+        so a glint (which stays put in the image while the tissue moves) cannot be matched. Returns
+        (place, keyframe, correlation, its lead) or None."""
         s = self.settings
+        lead = s.dense_reacquire_lead if lead is None else lead
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
@@ -1544,29 +1570,31 @@ class FeatureTracker(Tracker):
             score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
-            if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
-                    (best is None or top > best[2]):
-                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full)
+            if top >= s.dense_reacquire_ncc and top >= lead * second and (best is None or top > best[2]):
+                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full,
+                        top / max(second, 1e-6))
         if best is None:
             return None
-        p0, kf, top, full = best
+        p0, kf, top, full, led = best
         # Full resolution, within a few px of the half-resolution peak.
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
             return None
-        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
+        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1]), led
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
         """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
         that finds it again where the tissue around it went (the candidate's own band-passed
         surroundings followed by correlation): one good-looking frame is not enough."""
         s = self.settings
-        found = self._dense_search(frame)
         cand, self._cand = self._cand, None
+        # A candidate already led every other place once; where the tissue around it went, it must
+        # lead again, but a motion-blurred or noisy next frame may lower its lead a little.
+        found = self._dense_search(frame, None if cand is None else s.dense_confirm_lead)
         if found is None:
             return None
-        p, kf, top = found
+        p, kf, top, led = found
         view = self._crop(frame, p)
         img = _band(view.gray, *self._BAND_FULL)
         half = int(round(0.5 * self._window))
@@ -1610,7 +1638,7 @@ class FeatureTracker(Tracker):
                         return TrackResult(np.full(2, np.nan), 0.0, False, True)
                     return res
         c = np.round(p - view.to_frame[:2, 2]).astype(int)
-        if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
+        if led >= s.dense_reacquire_lead and half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
             self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy()
         return None
 
