@@ -1580,7 +1580,9 @@ class FeatureTracker(Tracker):
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
-            return None
+            # The finest texture is gone (motion blur): the half-resolution place stands (the
+            # confirmation on the next frame and the keyframe's refinement follow).
+            return p0, kf, top, led
         return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1]), led
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
