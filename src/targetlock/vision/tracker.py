@@ -374,9 +374,6 @@ class TrackerSettings:
     dense_presearch_lead: float = param(1.15, lo=1.0, hi=100.0,
                                         doc="least quarter-resolution lead (best place / best other place) for a "
                                             "template's half-resolution search")
-    dense_confirm_lead: float = param(1.3, lo=1.0, hi=100.0,
-                                      doc="least lead (as dense_reacquire_lead) of a candidate found again on the next "
-                                          "frame where the tissue around it went")
     dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
                                     doc="a dense candidate is accepted when the next frame finds it again where the "
                                         "tissue around it moved, within this distance")
@@ -1519,15 +1516,13 @@ class FeatureTracker(Tracker):
             kf.self_ncc = float(score.max())
         return kf.self_ncc
 
-    def _dense_search(self, frame: np.ndarray, lead: float | None = None) -> tuple[np.ndarray, _Keyframe, float, float] | None:
+    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
         resolution, refined at full resolution), with its keyframe and correlation, if it stands
         out: correlation >= ``dense_reacquire_ncc`` and ``dense_reacquire_lead`` times that
-        of any other place (``lead``: another least ratio). Glints are filled smoothly before band-passing,
-        so a glint (which stays put in the image while the tissue moves) cannot be matched. Returns
-        (place, keyframe, correlation, its lead) or None."""
+        of any other place. Glints are filled smoothly before band-passing, so a glint
+        (which stays put in the image while the tissue moves) cannot be matched."""
         s = self.settings
-        lead = s.dense_reacquire_lead if lead is None else lead
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
@@ -1570,20 +1565,20 @@ class FeatureTracker(Tracker):
             score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
-            if top >= s.dense_reacquire_ncc and top >= lead * second and (best is None or top > best[2]):
-                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full,
-                        top / max(second, 1e-6))
+            if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
+                    (best is None or top > best[2]):
+                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full)
         if best is None:
             return None
-        p0, kf, top, full, led = best
+        p0, kf, top, full = best
         # Full resolution, within a few px of the half-resolution peak.
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
             # The finest texture is gone (motion blur): the half-resolution place stands (the
             # confirmation on the next frame and the keyframe's refinement follow).
-            return p0, kf, top, led
-        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1]), led
+            return p0, kf, top
+        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
         """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
@@ -1591,12 +1586,13 @@ class FeatureTracker(Tracker):
         surroundings followed by correlation): one good-looking frame is not enough."""
         s = self.settings
         cand, self._cand = self._cand, None
-        # A candidate already led every other place once; where the tissue around it went, it must
-        # lead again, but a motion-blurred or noisy next frame may lower its lead a little.
-        found = self._dense_search(frame, None if cand is None else s.dense_confirm_lead)
+        # A candidate must lead every other place again on the next frame, where the tissue around it
+        # went: a lower lead there (1.3 was tried) confirmed a wrong place of the fundus that led 1.70
+        # and then 1.52 (seed 3's retina `leave`, target out of view), as often as it confirmed the target.
+        found = self._dense_search(frame)
         if found is None:
             return None
-        p, kf, top, led = found
+        p, kf, top = found
         view = self._crop(frame, p)
         img = _band(view.gray, *self._BAND_FULL)
         half = int(round(0.5 * self._window))
@@ -1640,7 +1636,7 @@ class FeatureTracker(Tracker):
                         return TrackResult(np.full(2, np.nan), 0.0, False, True)
                     return res
         c = np.round(p - view.to_frame[:2, 2]).astype(int)
-        if led >= s.dense_reacquire_lead and half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
+        if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
             self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy()
         return None
 
