@@ -366,6 +366,10 @@ class TrackerSettings:
                                     doc="a keyframe whose band-passed target window correlates this much with its own "
                                         "region a quarter window or more away (an edge, a repeated texture) is not "
                                         "searched for densely")
+    dense_energy_ratio: float = param(2.0, lo=1.0, hi=1000.0,
+                                      doc="a later keyframe whose band-passed target window has more than this times "
+                                          "the selection's texture energy (something new, e.g. an instrument's edge) "
+                                          "is not searched for densely")
     dense_presearch: bool = param(True, doc="pre-search the frame densely at quarter resolution: a template is "
                                             "searched at half resolution (which alone decides) only where it "
                                             "stands out there (saves CPU time while lost)")
@@ -1526,12 +1530,22 @@ class FeatureTracker(Tracker):
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
+            anchor_energy = None
             for kf in dict.fromkeys(kfs):  # unique, in order
                 small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
+                if kf is self._anchor and full is not None:
+                    anchor_energy = full[1]
                 # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
-                if small is not None and full is not None and full[1] >= 2.25 and \
-                        self._self_similarity(kf) < s.dense_unique_ncc:
-                    self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
+                if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
+                    continue
+                # A later keyframe's window with much more texture than the selection's holds something
+                # the target's surroundings did not have: an instrument's edge coming over the target
+                # (its outline then dominates a weak template, and the search finds the instrument:
+                # seed 3's retina `occlusion`, energy 2.5x the selection's, re-locked 160 px off on it)
+                if kf is not self._anchor and anchor_energy is not None and \
+                        full[1] > s.dense_energy_ratio * anchor_energy:
+                    continue
+                self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
         if not self._dense_tpl:
             return None
         img, fov, origin = self._dense_image(frame)
