@@ -29,15 +29,15 @@ def coffee_noise():
     return render_sequence("noise", EvalSettings(frames=30, photos=()), seed=0, target=target)
 
 
-def test_smooth_target_under_strong_noise_is_tracked_by_its_surroundings(coffee_noise):
+def test_smooth_target_under_strong_noise_is_tracked(coffee_noise):
     tracker = FeatureTracker()
     err = _errors(tracker, coffee_noise)
     assert tracker.selection["window_px"] > WINDOW   # the real corners are farther out
     assert np.mean(err < 4.0) >= 0.9, err.round(1)
-    assert np.mean(err < 2.0) >= 0.75, err.round(1)
+    assert np.median(err) < 2.0, err.round(1)
     assert np.all(err[np.isfinite(err)] < 8.0)        # never a wrong position
-    # counting noise corners as structure (as before) keeps the 80 px window: lost from frame 2
-    old = _errors(FeatureTracker(TrackerSettings(corner_noise_floor=0.0)), coffee_noise)
+    # as before (noise corners counted as structure, no smoothing): lost from frame 2
+    old = _errors(FeatureTracker(TrackerSettings(corner_noise_floor=0.0, denoise_px=0.0)), coffee_noise)
     assert np.mean(old < 4.0) < 0.1
 
 
@@ -109,3 +109,26 @@ def test_target_under_glare_is_verified_by_its_window(cam, sel_pose, mucosa_targ
     other = _glared(other, f1.truth_px)
     _, _, seen = tracker._patch_similarity(tracker._crop(other, f1.truth_px), tracker._anchor, key_to_frame)
     assert not seen
+
+
+def test_instrument_in_a_later_keyframe_is_not_searched_for():
+    """`vision-eval`'s `occlusion` on the fundus photograph (seed 3): the last keyframe before the
+    instrument covers the target already holds the instrument's tip, whose outline outweighs the
+    faint vessels in its band-passed window. Searched for once the target is lost, it found the
+    instrument 160 px away (and tracked it for 30 frames). The target is found again after the
+    instrument withdraws, and no frame reports a wrong position."""
+    target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
+    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=3, target=target)
+
+    def run(settings):
+        tracker = FeatureTracker(settings)
+        assert tracker.select(frames[0].image, frames[0].truth_px, WINDOW)
+        return [tracker.update(f.image, i / 22.0) for i, f in enumerate(frames[1:], 1)]
+
+    def wrong(results):
+        return sum(r.valid and np.hypot(*(r.position_px - f.truth_px)) > 8.0 for r, f in zip(results, frames[1:]))
+
+    res = run(None)
+    assert wrong(res) == 0
+    assert all(r.valid and np.hypot(*(r.position_px - f.truth_px)) < 4.0 for r, f in zip(res[-10:], frames[-10:]))
+    assert wrong(run(TrackerSettings(dense_energy_ratio=1000.0))) > 10   # searching for the instrument too
