@@ -1215,10 +1215,15 @@ class FeatureTracker(Tracker):
             conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
             if est_chain is not None:
                 if np.hypot(*(est - est_chain)) > s.consistency_px:
-                    if kf is not self._anchor or n_in < 2 * s.min_inliers:
+                    inl_pts = kdst[inl]
+                    around = bool(np.all(est > inl_pts.min(axis=0)) and np.all(est < inl_pts.max(axis=0)))
+                    if kf is not self._anchor or n_in < 2 * s.min_inliers or not around:
                         self.stats["inconsistent"] += 1  # X_n-1 -> X_n disagrees with keyframe -> X_n
                         return None
-                    # A strong match of the selection itself overrules the chain: drift corrected.
+                    # A strong match of the selection itself overrules the chain: drift corrected;
+                    # not from features on one side of the target only (an extrapolation: under
+                    # noise, anchor features along one rim slid along it and "corrected" a right
+                    # chain 2 -> 20 px off in 6 frames, seed 4's coffee `noise`).
                     self.stats["corrections"] += 1
                     est_chain = est
                 # Both agree: average them by their inlier counts. The keyframe keeps the chain
