@@ -227,6 +227,16 @@ def _band(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return cv2.GaussianBlur(f, (0, 0), lo) - cv2.GaussianBlur(f, (0, 0), hi)
 
 
+def _masked_ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised correlation of two equal-sized templates over the pixels both use (non-zero)."""
+    ok = (a != 0) & (b != 0)
+    if np.count_nonzero(ok) < 16:
+        return 0.0
+    x, y = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
+    den = math.sqrt(float(np.dot(x, x)) * float(np.dot(y, y)))
+    return float(np.dot(x, y)) / den if den > 0 else 0.0
+
+
 def _halved(img: np.ndarray) -> np.ndarray:
     """``img`` at half its resolution (area average; an odd side rounds up, so a window keeps a centre)."""
     h, w = img.shape[:2]
@@ -368,8 +378,11 @@ class TrackerSettings:
                                         "searched for densely")
     dense_energy_ratio: float = param(2.0, lo=1.0, hi=1000.0,
                                       doc="a later keyframe whose band-passed target window has more than this times "
-                                          "the selection's texture energy (something new, e.g. an instrument's edge) "
-                                          "is not searched for densely")
+                                          "the selection's texture energy and correlates less than dense_agree_ncc "
+                                          "with it (something new and strong, e.g. an instrument's edge) is not "
+                                          "searched for densely")
+    dense_agree_ncc: float = param(0.3, lo=-1.0, hi=1.0,
+                                   doc="see dense_energy_ratio")
     dense_presearch: bool = param(True, doc="pre-search the frame densely at quarter resolution: a template is "
                                             "searched at half resolution (which alone decides) only where it "
                                             "stands out there (saves CPU time while lost)")
@@ -1535,20 +1548,24 @@ class FeatureTracker(Tracker):
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
-            anchor_energy = None
+            anchor = None
             for kf in dict.fromkeys(kfs):  # unique, in order
                 small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
-                if kf is self._anchor and full is not None:
-                    anchor_energy = full[1]
+                if kf is self._anchor:
+                    anchor = full
                 # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
                 if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
                     continue
-                # A later keyframe's window with much more texture than the selection's holds something
-                # the target's surroundings did not have: an instrument's edge coming over the target
-                # (its outline then dominates a weak template, and the search finds the instrument:
-                # seed 3's retina `occlusion`, energy 2.5x the selection's, re-locked 160 px off on it)
-                if kf is not self._anchor and anchor_energy is not None and \
-                        full[1] > s.dense_energy_ratio * anchor_energy:
+                # A later keyframe's window with much more texture than the selection's that does not
+                # look like it (both seen at the current view's scale and rotation) holds something new
+                # and strong: an instrument's edge coming over the target (its outline then dominates
+                # a weak template, and the search finds the instrument: seed 3's retina `occlusion`,
+                # 2.5x the energy, correlation 0.15, re-locked 160 px off on it). A sharp view of a
+                # blurred selection has more texture too, but correlates with it (0.65, seed 4's
+                # retina `blur`); a view near the edge of the field of view (`leave`) correlates
+                # little (-0.1-0.4) but has no more texture.
+                if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
+                        and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
                     continue
                 self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
         if not self._dense_tpl:
