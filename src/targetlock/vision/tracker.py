@@ -26,6 +26,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
+    Under strong sensor noise the selection counts only corners above the noise and the regions
+    are smoothed before the flow.
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
     searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole
     frame (the field of view's bounding box) by a **dense search** of the
