@@ -26,6 +26,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     changes the region's normalisation) before it counts as a miss; over misses the prediction
     coasts on the last velocity. The confidence scales with the share of the target window
     inside the field of view (a target at the edge is tracked on the features that remain).
+    Under strong sensor noise the selection counts only corners above the noise and the regions
+    are smoothed before the flow.
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
     searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole
     frame (the field of view's bounding box) by a **dense search** of the
@@ -227,6 +229,16 @@ def _band(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return cv2.GaussianBlur(f, (0, 0), lo) - cv2.GaussianBlur(f, (0, 0), hi)
 
 
+def _masked_ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised correlation of two equal-sized templates over the pixels both use (non-zero)."""
+    ok = (a != 0) & (b != 0)
+    if np.count_nonzero(ok) < 16:
+        return 0.0
+    x, y = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
+    den = math.sqrt(float(np.dot(x, x)) * float(np.dot(y, y)))
+    return float(np.dot(x, y)) / den if den > 0 else 0.0
+
+
 def _halved(img: np.ndarray) -> np.ndarray:
     """``img`` at half its resolution (area average; an odd side rounds up, so a window keeps a centre)."""
     h, w = img.shape[:2]
@@ -319,6 +331,16 @@ class TrackerSettings:
                                        doc="largest bright blob that is a glint; larger bright areas: only clipped pixels")
     highlight_max_share: float = param(0.25, lo=0.0, hi=1.0,
                                        doc="largest share of a region masked as highlight (the brightest are kept)")
+    corner_noise_floor: float = param(4.0, lo=0.0, hi=1000.0,
+                                      doc="a corner whose strength (smallest eigenvalue of the 5 px structure tensor of "
+                                          "the normalised gray) is below this x the region's noise variance is noise "
+                                          "(twice the strongest that pure noise makes); 0: every corner counts")
+    corner_noise_level: float = param(3.0, unit="levels", lo=0.0, hi=255.0,
+                                      doc="sensor noise (std, 8-bit gray levels of the frame) above which the "
+                                          "selection counts only corners above corner_noise_floor")
+    denoise_px: float = param(1.0, unit="px", lo=0.0, hi=10.0,
+                              doc="Gaussian sigma the regions are smoothed with before the optical flow when the "
+                                  "sensor noise at selection is above corner_noise_level; 0: never")
     patch_reject_ncc: float = param(0.2, lo=-1.0, hi=1.0,
                                     doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
     patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
@@ -352,6 +374,17 @@ class TrackerSettings:
                                        doc="least normalised correlation of a dense re-acquisition candidate")
     dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
                                         doc="least ratio of the candidate's correlation to the best other place's")
+    dense_unique_ncc: float = param(0.6, lo=-1.0, hi=1.0,
+                                    doc="a keyframe whose band-passed target window correlates this much with its own "
+                                        "region a quarter window or more away (an edge, a repeated texture) is not "
+                                        "searched for densely")
+    dense_energy_ratio: float = param(2.0, lo=1.0, hi=1000.0,
+                                      doc="a later keyframe whose band-passed target window has more than this times "
+                                          "the selection's texture energy and correlates less than dense_agree_ncc "
+                                          "with it (something new and strong, e.g. an instrument's edge) is not "
+                                          "searched for densely")
+    dense_agree_ncc: float = param(0.3, lo=-1.0, hi=1.0,
+                                   doc="see dense_energy_ratio")
     dense_presearch: bool = param(True, doc="pre-search the frame densely at quarter resolution: a template is "
                                             "searched at half resolution (which alone decides) only where it "
                                             "stands out there (saves CPU time while lost)")
@@ -382,6 +415,7 @@ class _View:
     zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
     sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
+    gain: float = 1.0               # gray = gain * raw + zero
 
     _LAPLACE = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
@@ -421,8 +455,11 @@ class _Keyframe:
     # many such keyframes in a row led to it (0: its target patch was compared)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
+    patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
     detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
+    self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
+    # the target (an edge or a repeated texture matches elsewhere too), made on first use
 
 
 class FeatureTracker(Tracker):
@@ -460,6 +497,7 @@ class FeatureTracker(Tracker):
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
+        self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self.selection: dict | None = None
@@ -533,7 +571,7 @@ class FeatureTracker(Tracker):
             fill = num / np.maximum(den, 1e-3)
             fill[den < 1e-3] = 128.0
             sub[m] = fill[m].astype(np.uint8)
-        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]))
+        return _View(norm, to_frame, sat, raw, fov, 128.0 - alpha * float(mean[0, 0]), gain=alpha)
 
     def _crop(self, frame: np.ndarray, centre: np.ndarray) -> _View:
         """Square region of side ``self._side`` around ``centre``, shifted to lie inside the frame
@@ -545,7 +583,13 @@ class FeatureTracker(Tracker):
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         fov = self._fov[y0:y0 + side, x0:x0 + side]
-        return self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0)))
+        return self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+
+    def _smoothed(self, view: _View) -> _View:
+        """``view`` with its gray smoothed when the sensor is noisy (``denoise_px``, set at selection)."""
+        if self._smooth > 0.0:
+            view.gray = cv2.GaussianBlur(view.gray, (0, 0), self._smooth)
+        return view
 
     def _warp(self, base: _View, local_to_frame: np.ndarray) -> _View:
         """The preprocessed region ``base`` resampled through ``local_to_frame`` (3x3), so it lines
@@ -559,12 +603,23 @@ class FeatureTracker(Tracker):
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
         fov = cv2.warpAffine(self._fov, local_to_frame[:2], size, flags=cv2.INTER_NEAREST | inv,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return self._normalise(raw, fov, sat, local_to_frame.copy())
+        return self._smoothed(self._normalise(raw, fov, sat, local_to_frame.copy()))
 
     def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
                   masked: bool = True) -> np.ndarray:
         """Corners (frame px) within a square of half-side ``half`` px around ``centre`` in a crop view
-        (``quality``: goodFeaturesToTrack level, default the setting; ``masked``: not on highlights)."""
+        (``quality``: goodFeaturesToTrack level, default the setting; ``masked``: not on highlights);
+        only those above the sensor noise when there are enough of them (:meth:`_corners`)."""
+        return self._corners(view, centre, half, quality, masked)[0]
+
+    def _corners(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
+                 masked: bool = True) -> tuple[np.ndarray, int]:
+        """:meth:`_features` and how many of them stand above the sensor noise: a corner whose
+        Shi-Tomasi strength (smallest eigenvalue) is below ``corner_noise_floor`` x the noise
+        variance of the region is what noise alone makes (fresh on every frame, nothing the flow
+        can follow; on a smooth target under strong noise nearly every corner found is one). When
+        at least 1.5 x ``min_inliers`` corners are above it, only those are returned; else all (weak
+        texture: the corners there are all that can be followed)."""
         s = self.settings
         h, w = view.gray.shape
         off = view.to_frame[:2, 2]
@@ -572,7 +627,7 @@ class FeatureTracker(Tracker):
         x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
         x1, y1 = int(min(w, c[0] + half + 1)), int(min(h, c[1] + half + 1))
         if x1 <= x0 or y1 <= y0:
-            return np.zeros((0, 2), np.float32)
+            return np.zeros((0, 2), np.float32), 0
         mask = np.zeros((h, w), np.uint8)
         ox, oy = int(off[0]), int(off[1])
         mask[y0:y1, x0:x1] = self._fov[oy + y0:oy + y1, ox + x0:ox + x1]
@@ -581,8 +636,16 @@ class FeatureTracker(Tracker):
         pts = cv2.goodFeaturesToTrack(view.gray, s.max_features, quality or s.feature_quality,
                                       s.min_feature_distance_px, mask=mask, blockSize=5)
         if pts is None:
-            return np.zeros((0, 2), np.float32)
-        return pts.reshape(-1, 2) + off.astype(np.float32)
+            return np.zeros((0, 2), np.float32), 0
+        pts = pts.reshape(-1, 2)
+        if s.corner_noise_floor <= 0.0 or view.noise() < s.corner_noise_level * view.gain:
+            return pts + off.astype(np.float32), len(pts)
+        # the corner strength where the corners are (the window plus the 3 px the 5 px block reaches)
+        bx0, by0 = max(0, x0 - 3), max(0, y0 - 3)
+        eig = cv2.cornerMinEigenVal(view.gray[by0:min(h, y1 + 3), bx0:min(w, x1 + 3)].astype(np.float32), 5, 3)
+        q = np.round(pts).astype(int) - (bx0, by0)
+        strong = eig[q[:, 1], q[:, 0]] > s.corner_noise_floor * view.noise() ** 2
+        return pts + off.astype(np.float32), int(np.count_nonzero(strong))
 
     # ------------------------------------------------------------- estimation
     def _flow(self, a: _View, b: _View, pts: np.ndarray, guess: np.ndarray, levels: int):
@@ -711,6 +774,7 @@ class FeatureTracker(Tracker):
             return False
         self._fov_half = self._fov_quarter = None
         self._box = None
+        self._smooth = 0.0
         self._pos = p.copy()
         if not self._in_view(p):
             self.failure = "point is outside the endoscope's field of view (or on its edge)"
@@ -729,16 +793,26 @@ class FeatureTracker(Tracker):
             window = min(2048.0, grow * float(window_px))
             self._setup_window(frame_bgr, window)
             view = self._crop(frame_bgr, p)
-            pts = self._features(view, p, 0.5 * self._window, quality, masked)
+            pts, n_strong = self._corners(view, p, 0.5 * self._window, quality, masked)
             best = max(best, len(pts))
-            if len(pts) >= s.min_inliers and (found is None or len(pts) >= margin):
-                found = (window, quality, masked, view, pts)
-            if found is not None and len(found[4]) >= margin:
+            if len(pts) >= s.min_inliers and (found is None or n_strong >= margin):
+                found = (window, quality, masked, view, pts, n_strong)
+            if found is not None and found[5] >= margin:
                 break
         if found is not None:
-            window, quality, masked, view, pts = found
+            window, quality, masked, view, pts, _ = found
             if window != self._window:
                 self._setup_window(frame_bgr, window)
+            if s.denoise_px > 0.0 and view.noise() >= s.corner_noise_level * view.gain:
+                # A noisy sensor: every region is smoothed before the flow (the noise is fresh on
+                # every frame, nothing to follow); the corners are taken from the smoothed view.
+                self._smooth = s.denoise_px
+                smooth = self._crop(frame_bgr, p)
+                spts = self._features(smooth, p, 0.5 * self._window, quality, masked)
+                if len(spts) >= s.min_inliers:
+                    view, pts = smooth, spts
+                else:
+                    self._smooth = 0.0
             kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
             self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
                               "highlights_masked": masked, "features": len(pts)}
@@ -849,12 +923,9 @@ class FeatureTracker(Tracker):
         itself unverified). ``motion_px``: the target's motion per frame interval (px); a patch
         that decorrelated is then also compared with the keyframe's smeared along it (motion blur),
         and passing that way scores just below ``patch_keyframe_ncc`` (accepted, no keyframe)."""
-        half = max(7, int(round(0.2 * self._window)))
-        side = 2 * half + 1
-        to_patch = _translation(kf.target - half)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
-        def sample(v: _View, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def sample(v: _View, m: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:
             g = cv2.warpAffine(v.gray, m[:2], (side, side), flags=flags, borderMode=cv2.BORDER_REPLICATE)
             sat = cv2.warpAffine(v.sat.view(np.uint8), m[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REPLICATE)
@@ -868,21 +939,44 @@ class FeatureTracker(Tracker):
             level = float(np.mean(g[ok])) - v.zero if ok.any() else 0.0
             return _band(g, 1.0, 4.0), ok, level
 
-        # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
-        # taken out, so strong noise on weak texture does not read as another texture.
-        if kf.patch is None:
-            ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch)
-            nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
-            local = cv2.blur(ref * ref, (9, 9))
-            kf.patch = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
-        ref, ok_ref, ref_local, nv_ref, ref_level = kf.patch
-        cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch)
-        gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # this patch in the keyframe's contrast
-        cur = cur * np.float32(gain)
-        nv_cur = self._NOISE_BAND * (gain * view.noise()) ** 2
-        ok = ok_ref & ok_cur
+        def patches(half: int, wide: bool):
+            """(keyframe's patch: band-passed, usable mask, local energy, noise variance, level; this
+            frame's: band-passed in the keyframe's contrast, noise variance; both usable) of side 2 half + 1."""
+            side = 2 * half + 1
+            to_patch = _translation(kf.target - half)
+            # Sensor noise is in both band-passed patches' energy but not in their covariance: it is
+            # taken out, so strong noise on weak texture does not read as another texture.
+            cached = kf.patch_wide if wide else kf.patch
+            if cached is None:
+                ref, ok_ref, level = sample(kf.view, _inv(kf.view.to_frame) @ to_patch, side)
+                nv_ref = self._NOISE_BAND * kf.view.noise() ** 2
+                local = cv2.blur(ref * ref, (9, 9))
+                cached = ref, ok_ref, np.maximum(local - nv_ref, 0.25 * local) + 1.0, nv_ref, level
+                if wide:
+                    kf.patch_wide = cached
+                else:
+                    kf.patch = cached
+            ref, ok_ref, ref_local, nv_ref, ref_level = cached
+            cur, ok_cur, level = sample(view, _inv(view.to_frame) @ key_to_frame @ to_patch, side)
+            gain = ref_level / level if ref_level > 1.0 and level > 1.0 else 1.0  # in the keyframe's contrast
+            return ref, ref_local, nv_ref, cur * np.float32(gain), self._NOISE_BAND * (gain * view.noise()) ** 2, \
+                ok_ref & ok_cur
+
+        ref, ref_local, nv_ref, cur, nv_cur, ok = patches(max(7, int(round(0.2 * self._window))), False)
         if np.count_nonzero(ok) < 0.3 * ok.size:
-            return 1.0, False, False  # mostly glare: nothing to compare (the glare test is elsewhere)
+            # Mostly glare: the target itself cannot be compared (the glare test is elsewhere). Its
+            # whole window still can: when that matches the keyframe's, this view is registered
+            # where the keyframe was (a keyframe made from it hands on no error); else it stays
+            # unverified (coffee `leave`: the target on a glossy spoon, under glints for 10 frames,
+            # made no keyframe after the second such one, and the keyframe flow, distorted towards
+            # the edge of the view, lost it while the chain still followed it).
+            wide = patches(int(0.5 * self._window), True)
+            usable = wide[5]
+            # its own correlation (not the energy rules' pass), and only a textured window (band-passed
+            # std >= 2 of 40: a smooth one would "match" anywhere)
+            seen = (np.count_nonzero(usable) >= 0.3 * usable.size and float(np.std(wide[0][usable])) >= 2.0 and
+                    self._patch_score(*wide)[2] >= self.settings.patch_keyframe_ncc)
+            return 1.0, False, seen
         out = (*self._patch_score(ref, ref_local, nv_ref, cur, nv_cur, ok)[:2], True)
         if out[0] >= self.settings.patch_keyframe_ncc or motion_px is None:
             return out
@@ -1136,10 +1230,15 @@ class FeatureTracker(Tracker):
             conf = min(1.0, n_in / max(len(kf.pts), 1) / 0.8) * min(1.0, n_in / (2.0 * s.min_inliers))
             if est_chain is not None:
                 if np.hypot(*(est - est_chain)) > s.consistency_px:
-                    if kf is not self._anchor or n_in < 2 * s.min_inliers:
+                    inl_pts = kdst[inl]
+                    around = bool(np.all(est > inl_pts.min(axis=0)) and np.all(est < inl_pts.max(axis=0)))
+                    if kf is not self._anchor or n_in < 2 * s.min_inliers or not around:
                         self.stats["inconsistent"] += 1  # X_n-1 -> X_n disagrees with keyframe -> X_n
                         return None
-                    # A strong match of the selection itself overrules the chain: drift corrected.
+                    # A strong match of the selection itself overrules the chain: drift corrected;
+                    # not from features on one side of the target only (an extrapolation: under
+                    # noise, anchor features along one rim slid along it and "corrected" a right
+                    # chain 2 -> 20 px off in 6 frames, seed 4's coffee `noise`).
                     self.stats["corrections"] += 1
                     est_chain = est
                 # Both agree: average them by their inlier counts. The keyframe keeps the chain
@@ -1420,6 +1519,27 @@ class FeatureTracker(Tracker):
         img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
         return img, fov, np.array([x0, y0], float)
 
+    def _self_similarity(self, kf: _Keyframe) -> float:
+        """How well keyframe ``kf``'s band-passed target window matches its own surroundings (the
+        keyframe's region, half resolution) more than a quarter window away from itself: a window
+        whose texture is one edge (a rim, a fold) or repeats matches there too, and a dense search
+        of the whole frame would find another place along that edge as readily as the target
+        (coffee `lighting`: a window on a cup's rim re-acquired 82 px along the rim)."""
+        if kf.self_ncc is None:
+            bp, valid = self._kf_band(kf)
+            img = _halved(np.where(valid > 0, bp, np.float32(0.0)))
+            half = int(round(0.25 * self._window))
+            t = np.round(0.5 * (kf.target - kf.view.to_frame[:2, 2])).astype(int)
+            h, w = img.shape
+            if not (half <= t[0] < w - half and half <= t[1] < h - half):
+                kf.self_ncc = 0.0
+                return kf.self_ncc
+            tpl = img[t[1] - half:t[1] + half + 1, t[0] - half:t[0] + half + 1]
+            score = cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)
+            cv2.circle(score, (int(t[0] - half), int(t[1] - half)), max(3, half // 2), -2.0, -1)
+            kf.self_ncc = float(score.max())
+        return kf.self_ncc
+
     def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
         resolution, refined at full resolution), with its keyframe and correlation, if it stands
@@ -1430,11 +1550,26 @@ class FeatureTracker(Tracker):
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
+            anchor = None
             for kf in dict.fromkeys(kfs):  # unique, in order
                 small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
+                if kf is self._anchor:
+                    anchor = full
                 # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
-                if small is not None and full is not None and full[1] >= 2.25:
-                    self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
+                if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
+                    continue
+                # A later keyframe's window with much more texture than the selection's that does not
+                # look like it (both seen at the current view's scale and rotation) holds something new
+                # and strong: an instrument's edge coming over the target (its outline then dominates
+                # a weak template, and the search finds the instrument: seed 3's retina `occlusion`,
+                # 2.5x the energy, correlation 0.15, re-locked 160 px off on it). A sharp view of a
+                # blurred selection has more texture too, but correlates with it (0.65, seed 4's
+                # retina `blur`); a view near the edge of the field of view (`leave`) correlates
+                # little (-0.1-0.4) but has no more texture.
+                if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
+                        and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
+                    continue
+                self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
         if not self._dense_tpl:
             return None
         img, fov, origin = self._dense_image(frame)
@@ -1478,7 +1613,9 @@ class FeatureTracker(Tracker):
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
-            return None
+            # The finest texture is gone (motion blur): the half-resolution place stands (the
+            # confirmation on the next frame and the keyframe's refinement follow).
+            return p0, kf, top
         return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
@@ -1486,8 +1623,11 @@ class FeatureTracker(Tracker):
         that finds it again where the tissue around it went (the candidate's own band-passed
         surroundings followed by correlation): one good-looking frame is not enough."""
         s = self.settings
-        found = self._dense_search(frame)
         cand, self._cand = self._cand, None
+        # A candidate must lead every other place again on the next frame, where the tissue around it
+        # went: a lower lead there (1.3 was tried) confirmed a wrong place of the fundus that led 1.70
+        # and then 1.52 (seed 3's retina `leave`, target out of view), as often as it confirmed the target.
+        found = self._dense_search(frame)
         if found is None:
             return None
         p, kf, top = found
