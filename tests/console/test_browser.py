@@ -32,6 +32,13 @@ def _wait(cond, timeout: float, what: str, every: float = 0.05):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def _run_for(session, seconds: float) -> None:
+    """Wait until the loop has run ``seconds`` more of its own time (s). Not wall time: on a loaded host
+    the loop falls behind the wall clock (it runs every tick late, then catches up)."""
+    t0 = session.time
+    _wait(lambda: session.time >= t0 + seconds, 30 + 10 * seconds, f"{seconds} s of loop time")
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     cfg = from_dict(RunConfig, {"vision": True, "realtime": True, "twin": {"scene": {"path": "static"}}})
@@ -100,7 +107,7 @@ def test_click_selects_target_where_clicked(page, session):
     cam = session.cfg.twin.camera
     x, y = cam.cx + 90.0, cam.cy + 55.0
     _click_image(page, x, y)
-    _wait(lambda: session.actions and session.actions[-1]["action"] == "select", 5, "the select action")
+    _wait(lambda: session.actions and session.actions[-1]["action"] == "select", 15, "the select action")
 
     def near():
         f = _frame(page)
@@ -119,7 +126,7 @@ def test_engage_brings_error_down(page, session):
     before = math.hypot(_frame(page)["x"] - cam.cx, _frame(page)["y"] - cam.cy)
     assert before > 80
     page.locator("#engage").click()
-    page.wait_for_function("window.tl.status.locked === true", timeout=5000)
+    page.wait_for_function("window.tl.status.locked === true", timeout=15000)
     page.wait_for_function(f"""(() => {{ const f = window.tl.lastFrame;
         return f.valid && Math.hypot(f.x - {cam.cx}, f.y - {cam.cy}) < 10; }})()""", timeout=30000)
     f = _frame(page)
@@ -130,7 +137,7 @@ def test_engage_brings_error_down(page, session):
 def test_gain_change_takes_effect_and_bad_gain_is_refused(page, session):
     page.fill("input[name=i_gain]", "-5")
     page.locator("#apply").click()
-    page.wait_for_function("window.tl.errors.length > 0", timeout=5000)
+    page.wait_for_function("window.tl.errors.length > 0", timeout=15000)
     msg = page.locator("#message").inner_text()
     assert "controller.i_gain = -5.0 is out of range; allowed: [-1.0, 100000.0]" in msg
     assert session.switch.inner.cfg.integral_gain == 300.0      # unchanged: the controller's own default
@@ -138,31 +145,31 @@ def test_gain_change_takes_effect_and_bad_gain_is_refused(page, session):
     page.select_option("#kind", "pi")
     page.locator("#apply").click()
     # the loop swapped in the new controller at a tick (no restart), and the page shows it
-    _wait(lambda: session.switch.inner.cfg.i_gain == 150.0 and session.switch.inner.cfg.kind == "pi", 5, "the new controller")
+    _wait(lambda: session.switch.inner.cfg.i_gain == 150.0 and session.switch.inner.cfg.kind == "pi", 15, "the new controller")
     page.wait_for_function("window.tl.status.controller.i_gain === 150 && window.tl.status.controller.kind === 'pi'",
-                           timeout=5000)
+                           timeout=15000)
     assert any(a["action"] == "tune" and a.get("i_gain") == 150 for a in session.actions)
 
 
 def test_stop_key_disables_drives_until_explicit_enable(page, session):
     if not session.switch.locked:
         page.locator("#engage").click()
-        _wait(lambda: session.switch.locked, 5, "engaged")
+        _wait(lambda: session.switch.locked, 15, "engaged")
     page.locator("body").press("Space")
-    page.wait_for_function("window.tl.status.drives.enabled === false", timeout=5000)
+    page.wait_for_function("window.tl.status.drives.enabled === false", timeout=15000)
     assert session.safe.tripped
     assert "operator stop" in session.safe.fault()
     assert not session.switch.locked
-    time.sleep(0.3)        # the handle finishes the motion it had when stopped (drive lag, a few ticks)
+    _run_for(session, 0.3)      # the handle finishes the motion it had when stopped (drive lag, a few ticks)
     refused = session.drives.refused
     pos = session.safe.positions().copy()
-    time.sleep(0.5)
+    _run_for(session, 0.5)
     assert session.drives.refused > refused            # the loop runs on, no set-point reaches the drives
     assert (abs(session.safe.positions() - pos) <= 2).all()
     assert page.locator("#engage").is_disabled()
     assert session.safe.tripped                        # nothing re-enables by itself
     page.locator("#enable").click()
-    page.wait_for_function("window.tl.status.drives.enabled === true", timeout=5000)
+    page.wait_for_function("window.tl.status.drives.enabled === true", timeout=15000)
     assert not session.safe.tripped and not session.switch.locked   # re-enabled, lock still released
 
 
@@ -170,10 +177,10 @@ def test_stop_button_is_a_single_click(page, session):
     dialogs = []
     page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
     page.locator("#stop").click()
-    page.wait_for_function("window.tl.status.drives.enabled === false", timeout=5000)
+    page.wait_for_function("window.tl.status.drives.enabled === false", timeout=15000)
     assert dialogs == []
     page.locator("#enable").click()
-    page.wait_for_function("window.tl.status.drives.enabled === true", timeout=5000)
+    page.wait_for_function("window.tl.status.drives.enabled === true", timeout=15000)
 
 
 def test_not_on_loopback_every_request_needs_the_token(browser, session):
@@ -213,9 +220,9 @@ def test_not_on_loopback_every_request_needs_the_token(browser, session):
 
 def test_record_writes_a_run_folder(page, session):
     page.locator("#record").click()
-    page.wait_for_function("window.tl.status.recording !== null", timeout=5000)
+    page.wait_for_function("window.tl.status.recording !== null", timeout=15000)
     folder = session.status()["recording"]
-    time.sleep(1.5)
+    _run_for(session, 1.5)
     page.locator("#record").click()
     page.wait_for_function("window.tl.status.recording === null", timeout=15000)
     from pathlib import Path
@@ -233,13 +240,13 @@ def test_twin_target_path_changes_without_a_jump(page, session):
     scene = session.rig.scene
     before = scene.target_position(session.time)
     page.select_option("#path", "ellipse")
-    _wait(lambda: scene.path == "ellipse", 5, "the ellipse path")
+    _wait(lambda: scene.path == "ellipse", 15, "the ellipse path")
     t = session.time
     assert float(abs(scene.target_position(t) - before).max()) < 0.01     # m: continuous
-    time.sleep(2.5)
+    _run_for(session, 2.5)
     assert float(abs(scene.target_position(session.time) - before).max()) > 0.002   # and it moves now
     page.select_option("#path", "static")
-    _wait(lambda: scene.path == "static", 5, "the static path")
+    _wait(lambda: scene.path == "static", 15, "the static path")
 
 
 def test_shift_drag_moves_the_twin_target_by_the_dragged_pixels(page, session):
@@ -256,7 +263,7 @@ def test_shift_drag_moves_the_twin_target_by_the_dragged_pixels(page, session):
     page.mouse.move(x0 + 40 * k, y0 - 30 * k, steps=5)
     page.mouse.up()
     page.keyboard.up("Shift")
-    _wait(lambda: session.actions[-1]["action"] == "target-move", 5, "the target-move action")
+    _wait(lambda: session.actions[-1]["action"] == "target-move", 15, "the target-move action")
     a = session.actions[-1]
     assert a["dx"] == pytest.approx(40, abs=1.5) and a["dy"] == pytest.approx(-30, abs=1.5)
     cam, d = session.cfg.twin.camera, session.cfg.twin.scene.distance
@@ -264,16 +271,31 @@ def test_shift_drag_moves_the_twin_target_by_the_dragged_pixels(page, session):
     assert moved[0] == pytest.approx(a["dx"] * d / cam.fx, rel=1e-6) and moved[1] == pytest.approx(a["dy"] * d / cam.fy, rel=1e-6)
 
 
+def _frame_seq(message: bytes) -> int:
+    """The frame number in a /ws/frames message (4-byte header length, JSON header, JPEG)."""
+    n = int.from_bytes(message[:4], "big")
+    return json.loads(message[4:4 + n])["seq"]
+
+
 def test_a_page_that_stops_reading_never_holds_the_loop(server, session):
     import contextlib
 
     from websockets.sync.client import connect
+    url = f"ws://127.0.0.1:{server.port}/ws/frames"
     with contextlib.ExitStack() as stack:
-        stalled = [stack.enter_context(connect(f"ws://127.0.0.1:{server.port}/ws/frames", open_timeout=5, max_size=None))
-                   for _ in range(2)]
+        stalled = [stack.enter_context(connect(url, open_timeout=5, max_size=None)) for _ in range(2)]
         stalled[0].recv(timeout=10)       # one frame, then never acknowledge; the other never reads at all
         i0, _, _ = session.rows_since(1 << 62)
-        time.sleep(1.0)
-        i1, _, _ = session.rows_since(1 << 62)
-        assert i1 - i0 > 0.5 * session.cfg.loop.rate     # the loop ticked on (busy host: at least half the ticks)
-        assert session.status()["running"]
+        # A page that does read still gets new frames, one after each acknowledgement.
+        reader = stack.enter_context(connect(url, open_timeout=5, max_size=None))
+        seqs = []
+        for _ in range(5):
+            seqs.append(_frame_seq(reader.recv(timeout=30)))
+            reader.send("ack")
+        assert all(b > a for a, b in zip(seqs, seqs[1:])), seqs
+        # The loop ticks on while both stay stalled: a second's worth of ticks. The bound is generous on
+        # purpose: on a loaded 2-core host the loop gets a fraction of a core and runs seconds behind the wall
+        # clock (then catches up), but a loop held by the stalled pages never gets there.
+        _wait(lambda: session.rows_since(1 << 62)[0] - i0 >= session.cfg.loop.rate, 30,
+              "a second's worth of loop ticks while two pages stall")
+        assert session.status()["running"] and session.error is None

@@ -139,8 +139,7 @@ def test_reenable_recovers_a_drive_that_went_pre_operational_on_a_lost_host_hear
 
 def test_disable_is_repeated_until_the_drives_confirm_it_after_a_link_loss():
     # the host-heartbeat watch is off (allowed by the docs): the drives keep their state on link loss
-    with rig(drive_consumer_timeout=0.0, master_heartbeat_period=0.0, heartbeat_timeout=0.1,
-             sdo_timeout=0.05) as (cfg, sims, drives):
+    with rig(drive_consumer_timeout=0.0, master_heartbeat_period=0.0, heartbeat_timeout=0.1) as (cfg, sims, drives):
         drives.home()
         safe = SafeDrives(drives, SafetyConfig(monitor_period=0.01), close_inner=False)
         for s in sims.drives:
@@ -157,7 +156,7 @@ def test_disable_is_repeated_until_the_drives_confirm_it_after_a_link_loss():
 
 
 def test_sdo_only_disable_is_retried_until_a_hung_sdo_server_answers():
-    with rig(use_pdo=False, sdo_timeout=0.05) as (cfg, sims, drives):
+    with rig(use_pdo=False) as (cfg, sims, drives):
         drives.home()
         for s in sims.drives:
             s.set_sdo_mute(True)
@@ -171,7 +170,7 @@ def test_sdo_only_disable_is_retried_until_a_hung_sdo_server_answers():
 
 
 def test_disable_by_rpdo_when_sdo_does_not_answer():
-    with rig(behaviour=ELMO_LIKE, sdo_timeout=0.05) as (cfg, sims, drives):
+    with rig(behaviour=ELMO_LIKE) as (cfg, sims, drives):
         drives.home()
         for s in sims.drives:
             s.set_sdo_mute(True)
@@ -266,7 +265,7 @@ def test_a_silent_drive_does_not_block_the_setpoint_call():
 
 
 def test_slow_sdo_drive_still_starts_and_moves():
-    with rig(behaviour=SimDriveBehaviour(sdo_delay=0.01), sdo_timeout=0.2) as (cfg, sims, drives):
+    with rig(behaviour=SimDriveBehaviour(sdo_delay=0.01)) as (cfg, sims, drives):
         drives.home()
         drives.send_setpoints(np.array([300, -300]))
         assert wait_until(lambda: np.all(np.abs(drives.positions() - [300, -300]) <= 25), 2.0)
@@ -275,7 +274,7 @@ def test_slow_sdo_drive_still_starts_and_moves():
 # ---------------------------------------------------------------- item 9: smaller ones
 
 def test_sdo_timeout_in_sdo_only_mode_shows_in_fault():
-    with rig(use_pdo=False, sdo_timeout=0.05) as (cfg, sims, drives):
+    with rig(use_pdo=False) as (cfg, sims, drives):
         drives.home()
         sims[cfg.node_ids[0]].set_sdo_mute(True)
         # no command needed: the monitor polls the statusword in SDO-only mode

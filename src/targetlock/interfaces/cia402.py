@@ -792,9 +792,24 @@ class CiA402Drive:
     # call's deadline: a drive that is late is counted (missed) and caught up on the next call.
 
     def _ready_for_setpoints(self) -> None:
-        """After the last controlword by SDO: the first set-point may go at once if the acknowledge is low."""
+        """After the last controlword by SDO (bit 4 low): the first set-point may go at once if the acknowledge is low.
+
+        With status PDOs, the evidence is a status PDO produced after that command, as for every other raise: the
+        drive sends it from its cycle, so the cycle has seen bit 4 low and the first raise is an edge for a strict
+        drive. An SDO read of the statusword is no such evidence (the drive may not have run a cycle since the
+        command; the raise, milliseconds later, would then be no edge and the set-point lost)."""
+        if self.cfg.csp:
+            self._sp_phase, self._sp_seq = "idle", self._status_seq_now()
+            return
+        if self.pdo_active:
+            seq = self._status_seq_now()
+            sw = self._status_since(seq, lambda s: True, time.monotonic() + self.cfg.status_timeout, threading.Event())
+            # no status PDO in time: the first call waits for one (the "lowered" phase), within its own budget
+            self._sp_phase = "idle" if sw is not None and not sw & o.SW_SETPOINT_ACK else "lowered"
+            self._sp_seq = seq if self._sp_phase == "lowered" else self._status_seq_now()
+            return
         sw = self.read_statusword()               # read after the command: not a stale status
-        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK and not self.cfg.csp else "idle"
+        self._sp_phase = "lowered" if sw & o.SW_SETPOINT_ACK else "idle"
         self._sp_seq = self._status_seq_now()
 
     def _status_since(self, seq: int, predicate: Callable[[int], bool], deadline: float,
