@@ -77,6 +77,26 @@ def test_ticks_run_on_absolute_deadlines_on_the_wall_clock():
     assert 0.6 <= wall < 0.68          # shifted deadlines would end at 0.7 s
 
 
+def test_a_starved_wall_clock_loop_skips_slots_instead_of_falling_behind_without_bound():
+    from targetlock.loop.runner import MAX_BEHIND
+    rig, ctrl = rig_and_ctrl()
+    late, skipped, times = [], [], []
+
+    def starved(tick):                 # every tick takes two periods: the host cannot keep 50 Hz
+        late.append(tick.lateness)
+        skipped.append(tick.skipped)
+        times.append(tick.time)
+        time.sleep(0.04)
+
+    t0 = time.perf_counter()
+    n = ControlLoop(rig, ctrl, rate=50, clock=WallClock()).run(1.0, starved)
+    wall = time.perf_counter() - t0
+    assert n < 50 and sum(skipped) > 0           # slots were skipped...
+    assert max(late) < MAX_BEHIND + 0.2          # ...so the loop stays near the wall clock (catching up: ~1 s behind)
+    assert wall < 1.6                            # and the run ends on time (catching up: 2 s)
+    assert np.all(np.diff(times) > 0) and times[-1] == pytest.approx(1.0, abs=0.3)
+
+
 def test_sim_clock_runs_deterministically():
     def once():
         rig, ctrl = rig_and_ctrl()

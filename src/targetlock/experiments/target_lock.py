@@ -115,6 +115,7 @@ class RunRecorder:
         self.tip_x = RunningStats()                                # deg; a motion-capture gap is NaN
         self.ticks_after = 0
         self.lateness = RunningStats(hist_hi=1.0, resolution=1e-5)   # s
+        self.skipped = 0                  # slots a starved wall-clock loop skipped
         self.internal = RunningStats(hist_hi=1.0, resolution=1e-5)   # s, frame arrival -> set-point sent
         self.n_rows = 0
 
@@ -122,6 +123,7 @@ class RunRecorder:
         rig = self.rig
         truth = rig.truth_offset(tick.time)
         self.lateness.add(tick.lateness)
+        self.skipped += tick.skipped
         if tick.observation is not None:
             self.last_obs = tick.observation
             self.internal.add(tick.sent - tick.observation.arrival_time)
@@ -292,9 +294,10 @@ def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: R
     if realtime:
         summary["timing_ms"] = rec.timing_ms()
         period = 1.0 / cfg.loop.rate
-        # what the loop achieved on the wall clock: its rate, and the ticks that ran a whole period late
+        # what the loop achieved on the wall clock: its rate, the ticks that ran a whole period late, and
+        # the slots skipped when it fell more than MAX_BEHIND behind
         summary["loop"] = {"rate_hz": rec.n_rows / wall if wall > 0 else math.nan,
-                           "overruns": rec.lateness.count_above(period)}
+                           "overruns": rec.lateness.count_above(period), "skipped": rec.skipped}
     drives = rig.drives.report()
     if drives:
         summary["drives"] = drives

@@ -31,6 +31,11 @@ from .signals import deferred
 __all__ = ["LoopConfig", "ControlLoop", "Tick"]
 
 _FINISH = 0.0005  # s: the last bit before a deadline is left to the clock's precise sleep_until
+# s: on the wall clock a loop further behind its deadlines than this skips the slots that have passed. A
+# short stall is caught up (the ticks after it run late, on the original grid); a starved host would
+# otherwise fall behind without bound, and frames judged against the wall clock would all become too
+# old for the gate (the lock then holds, target "lost", while the frames are fine).
+MAX_BEHIND = 0.2
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,7 @@ class Tick:
     ticks: np.ndarray | None = None          # what was sent
     sent: float = 0.0                        # clock time right after the setpoints were sent (s)
     early: bool = False                      # run on an observation's arrival, before the deadline
+    skipped: int = 0                         # slots skipped just before this tick (a starved wall-clock loop)
 
 
 class ControlLoop:
@@ -123,6 +129,10 @@ class ControlLoop:
         rig, drives, tick = self.rig, self.rig.drives, self._tick
         try:
             k = self._k + 1
+            tick.skipped = 0
+            if self.clock.realtime and self.clock.now() - k * self.period > MAX_BEHIND:
+                tick.skipped = int(self.clock.now() / self.period) - k
+                k += tick.skipped
             deadline = k * self.period
             if self._early:
                 t, tick.lateness, tick.early = self._wait(deadline)
@@ -168,14 +178,17 @@ class ControlLoop:
             raise
 
     def run(self, seconds: float, on_tick: Callable[[Tick], None] | None = None) -> int:
-        """Run for ``seconds`` (s); returns the number of ticks executed."""
+        """Run for ``seconds`` (s); returns the number of ticks executed (fewer than ``seconds`` × rate only
+        when a starved wall-clock loop skipped slots: :data:`MAX_BEHIND`)."""
         self.begin()
+        n, executed = int(round(seconds / self.period)), 0
         try:
-            for _ in range(int(round(seconds / self.period))):
+            while self._k < n:
                 tick = self.tick()
+                executed += 1
                 if on_tick is not None:
                     on_tick(tick)
         except BaseException:
             self.rig.drives.disable()
             raise
-        return self._k
+        return executed
