@@ -396,6 +396,15 @@ class TrackerSettings:
     dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
                                     doc="a dense candidate is accepted when the next frame finds it again where the "
                                         "tissue around it moved, within this distance")
+    dense_streak_lead: float = param(1.3, lo=1.0, hi=100.0,
+                                     doc="a dense candidate leading every other place by less than "
+                                         "dense_reacquire_lead but at least this much is accepted once it has been "
+                                         "found again, where the tissue around it moved, on dense_streak_frames "
+                                         "consecutive frames")
+    dense_streak_frames: int = param(4, lo=2, hi=100, doc="see dense_streak_lead")
+    dense_agree_px: float = param(8.0, unit="px", lo=0.0, hi=100.0,
+                                  doc="a weak dense candidate (dense_streak_lead) of a later keyframe counts only "
+                                      "within this distance of the selection keyframe's best place")
 
     def check(self, prefix: str = "") -> None:
         if self.lk_window_px % 2 == 0:
@@ -1540,11 +1549,11 @@ class FeatureTracker(Tracker):
             kf.self_ncc = float(score.max())
         return kf.self_ncc
 
-    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
+    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float, bool] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
-        resolution, refined at full resolution), with its keyframe and correlation, if it stands
-        out: correlation >= ``dense_reacquire_ncc`` and ``dense_reacquire_lead`` times that
-        of any other place. Glints are filled smoothly before band-passing, so a glint
+        resolution, refined at full resolution), with its keyframe, correlation and whether it is
+        strong, if it stands out: correlation >= ``dense_reacquire_ncc`` and ``dense_streak_lead``
+        times that of any other place (strong: ``dense_reacquire_lead`` times). Glints are filled smoothly before band-passing, so a glint
         (which stays put in the image while the tissue moves) cannot be matched."""
         s = self.settings
         if self._dense_tpl is None:
@@ -1597,26 +1606,36 @@ class FeatureTracker(Tracker):
                 else:
                     self.stats["dense_presearch_skips"] += 1
             tpls = keep
-        best = None
+        peaks = []
         for kf, small, full, _ in tpls:
             half = small.shape[0] // 2
             score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
-            if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
-                    (best is None or top > best[2]):
-                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full)
+            peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full))
+        at_anchor = [p for p, kf, *_ in peaks if kf is self._anchor]
+        best = None
+        for p, kf, top, second, full in peaks:
+            strong = top >= s.dense_reacquire_lead * second
+            # A weak candidate (dense_streak_lead) of a later keyframe only where the selection's own
+            # template peaks too: a later keyframe may hold an instrument's edge, which leads a little,
+            # steadily, where the instrument goes (seed 2's coffee `occlusion`: 0.55 leading 1.4 on six
+            # consecutive frames, 185 px from the target and from the selection's peak).
+            weak = top >= s.dense_streak_lead * second and (
+                kf is self._anchor or any(np.hypot(*(p - q)) <= s.dense_agree_px for q in at_anchor))
+            if top >= s.dense_reacquire_ncc and (strong or weak) and (best is None or top > best[2]):
+                best = (p, kf, top, full, strong)
         if best is None:
             return None
-        p0, kf, top, full = best
+        p0, kf, top, full, strong = best
         # Full resolution, within a few px of the half-resolution peak.
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
             # The finest texture is gone (motion blur): the half-resolution place stands (the
             # confirmation on the next frame and the keyframe's refinement follow).
-            return p0, kf, top
-        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
+            return p0, kf, top, strong
+        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1]), strong
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
         """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
@@ -1624,58 +1643,68 @@ class FeatureTracker(Tracker):
         surroundings followed by correlation): one good-looking frame is not enough."""
         s = self.settings
         cand, self._cand = self._cand, None
-        # A candidate must lead every other place again on the next frame, where the tissue around it
-        # went: a lower lead there (1.3 was tried) confirmed a wrong place of the fundus that led 1.70
-        # and then 1.52 (seed 3's retina `leave`, target out of view), as often as it confirmed the target.
+        # A strong candidate must lead every other place strongly again on the next frame, where the
+        # tissue around it went: a lower lead there (1.3 was tried) confirmed a wrong place of the
+        # fundus that led 1.70 and then 1.52 (seed 3's retina `leave`, target out of view), as often
+        # as it confirmed the target. Weaker leads need a longer streak (dense_streak_frames).
         found = self._dense_search(frame)
         if found is None:
             return None
-        p, kf, top = found
+        p, kf, top, strong = found
+        streak = 1
         view = self._crop(frame, p)
         img = _band(view.gray, *self._BAND_FULL)
         half = int(round(0.5 * self._window))
         if cand is not None:
-            q, patch = cand
+            q, patch, cand_streak, cand_strong = cand
             # where the tissue around the previous candidate went (at most a jump away)
             r = int(min(s.max_jump_px * self._steps, s.search_margin_px))
             again = _match_around(img, patch, q - view.to_frame[:2, 2], r)
-            if again is not None:
-                moved = again[0] + view.to_frame[:2, 2]
-                if again[1] >= s.dense_reacquire_ncc and np.hypot(*(moved - p)) <= s.dense_confirm_px:
-                    rel = _similarity(self._from_anchor @ _inv(kf.from_anchor), kf.target)
-                    key_to_cur = rel.copy()
-                    key_to_cur[:2, 2] += p - _apply(rel, kf.target)
-                    # Refined like a tracked frame: the keyframe's corners (affine: follows the lens
-                    # distortion), else its dense window (ECC); the template's place is only a seed.
-                    # Without either (too weak a texture), the template's place is followed but not
-                    # reported until the next frame tracks it (near the edge of the view the lens
-                    # distortion deforms the template: its place may be several px off).
-                    km, _, kdst, wv = self._match_keyframe(view, kf, key_to_cur)
-                    dense = self._match_dense(kf, key_to_cur, wv) if km is None else None
-                    if km is not None:
-                        key_to_cur = km[0]
-                    elif dense is not None:
-                        key_to_cur = dense[0]
-                    p_ref = _apply(key_to_cur, kf.target)
-                    if np.hypot(*(p_ref - p)) > s.dense_confirm_px + 4.0 or not self._in_view(p_ref):
-                        return None
-                    p = p_ref
-                    key_to_cur = _similarity(key_to_cur, kf.target)
-                    pts = self._features(view, p, 0.5 * self._window, 0.1 * s.feature_quality)
-                    # the target's own patch must look like the keyframe's (as on every tracked frame)
-                    ncc, _, _ = self._patch_similarity(view, kf, key_to_cur)
-                    if ncc < s.patch_reject_ncc:
-                        return None
-                    self.stats["dense_reacquisitions"] += 1
-                    res = self._relocked(p, kf, key_to_cur, view, pts, 0.5 * top)
-                    if km is None and dense is None:  # tentative: reported once the next frame tracks
-                        # it, lost again at its first miss
-                        self._misses = s.max_misses
-                        return TrackResult(np.full(2, np.nan), 0.0, False, True)
-                    return res
+            followed = again is not None and again[1] >= s.dense_reacquire_ncc and \
+                np.hypot(*(again[0] + view.to_frame[:2, 2] - p)) <= s.dense_confirm_px
+            if followed:
+                streak = cand_streak + 1
+            # Accepted after two strong frames, or after a streak of weaker ones: a target coming back
+            # through the distorted, dim edge of the view and blurred by its motion leads its
+            # surroundings by only 1.3-1.7 for many frames (seed 0's retina `leave`: the top place,
+            # within 5 px of the target, on every search of frames 48-54, strong on one of them,
+            # re-locked by ORB at frame 64), while a wrong place that once leads strongly rarely
+            # keeps the lead on several consecutive frames.
+            if followed and ((cand_strong and strong) or streak >= s.dense_streak_frames):
+                rel = _similarity(self._from_anchor @ _inv(kf.from_anchor), kf.target)
+                key_to_cur = rel.copy()
+                key_to_cur[:2, 2] += p - _apply(rel, kf.target)
+                # Refined like a tracked frame: the keyframe's corners (affine: follows the lens
+                # distortion), else its dense window (ECC); the template's place is only a seed.
+                # Without either (too weak a texture), the template's place is followed but not
+                # reported until the next frame tracks it (near the edge of the view the lens
+                # distortion deforms the template: its place may be several px off).
+                km, _, kdst, wv = self._match_keyframe(view, kf, key_to_cur)
+                dense = self._match_dense(kf, key_to_cur, wv) if km is None else None
+                if km is not None:
+                    key_to_cur = km[0]
+                elif dense is not None:
+                    key_to_cur = dense[0]
+                p_ref = _apply(key_to_cur, kf.target)
+                if np.hypot(*(p_ref - p)) > s.dense_confirm_px + 4.0 or not self._in_view(p_ref):
+                    return None
+                p = p_ref
+                key_to_cur = _similarity(key_to_cur, kf.target)
+                pts = self._features(view, p, 0.5 * self._window, 0.1 * s.feature_quality)
+                # the target's own patch must look like the keyframe's (as on every tracked frame)
+                ncc, _, _ = self._patch_similarity(view, kf, key_to_cur)
+                if ncc < s.patch_reject_ncc:
+                    return None
+                self.stats["dense_reacquisitions"] += 1
+                res = self._relocked(p, kf, key_to_cur, view, pts, 0.5 * top)
+                if km is None and dense is None:  # tentative: reported once the next frame tracks
+                    # it, lost again at its first miss
+                    self._misses = s.max_misses
+                    return TrackResult(np.full(2, np.nan), 0.0, False, True)
+                return res
         c = np.round(p - view.to_frame[:2, 2]).astype(int)
         if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
-            self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy()
+            self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy(), streak, strong
         return None
 
     def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
