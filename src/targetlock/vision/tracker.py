@@ -405,6 +405,9 @@ class TrackerSettings:
     dense_agree_px: float = param(8.0, unit="px", lo=0.0, hi=100.0,
                                   doc="a weak dense candidate (dense_streak_lead) of a later keyframe counts only "
                                       "within this distance of the selection keyframe's best place")
+    dense_streak_any_keyframe: bool = param(False, doc="let a weak dense candidate of a later keyframe count without "
+                                                       "the selection keyframe's agreement (dense_agree_px); unsafe: "
+                                                       "a later keyframe may hold an instrument's edge (for comparison)")
 
     def check(self, prefix: str = "") -> None:
         if self.lk_window_px % 2 == 0:
@@ -1622,7 +1625,8 @@ class FeatureTracker(Tracker):
             # steadily, where the instrument goes (seed 2's coffee `occlusion`: 0.55 leading 1.4 on six
             # consecutive frames, 185 px from the target and from the selection's peak).
             weak = top >= s.dense_streak_lead * second and (
-                kf is self._anchor or any(np.hypot(*(p - q)) <= s.dense_agree_px for q in at_anchor))
+                kf is self._anchor or s.dense_streak_any_keyframe
+                or any(np.hypot(*(p - q)) <= s.dense_agree_px for q in at_anchor))
             if top >= s.dense_reacquire_ncc and (strong or weak) and (best is None or top > best[2]):
                 best = (p, kf, top, full, strong)
         if best is None:
