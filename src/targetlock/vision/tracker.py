@@ -396,6 +396,23 @@ class TrackerSettings:
     dense_confirm_px: float = param(3.0, unit="px", lo=0.1, hi=100.0,
                                     doc="a dense candidate is accepted when the next frame finds it again where the "
                                         "tissue around it moved, within this distance")
+    dense_streak_lead: float = param(1.3, lo=1.0, hi=100.0,
+                                     doc="a dense candidate leading every other place by less than "
+                                         "dense_reacquire_lead but at least this much is accepted once it has been "
+                                         "found again, where the tissue around it moved, on dense_streak_frames "
+                                         "consecutive frames")
+    dense_streak_frames: int = param(4, lo=2, hi=100, doc="see dense_streak_lead")
+    dense_agree_px: float = param(8.0, unit="px", lo=0.0, hi=100.0,
+                                  doc="a weak dense candidate (dense_streak_lead) of a later keyframe counts only "
+                                      "within this distance of the selection keyframe's best place")
+    dense_central_radius: float = param(0.4, lo=0.0, hi=1.0,
+                                        doc="while lost, the dense templates are also searched at the scale and "
+                                            "rotation of the last accepted frame with the target within this "
+                                            "fraction of the round view's radius from its centre (near the edge the "
+                                            "lens distortion shrinks the tracked scale, to 0.56 on a `leave`)")
+    dense_streak_any_keyframe: bool = param(False, doc="let a weak dense candidate of a later keyframe count without "
+                                                       "the selection keyframe's agreement (dense_agree_px); unsafe: "
+                                                       "a later keyframe may hold an instrument's edge (for comparison)")
 
     def check(self, prefix: str = "") -> None:
         if self.lk_window_px % 2 == 0:
@@ -825,6 +842,7 @@ class FeatureTracker(Tracker):
             return False
         self._anchor = self._key = kf
         self._from_anchor = np.eye(3)   # anchor frame -> last accepted frame (similarity)
+        self._central_from_anchor = np.eye(3)  # ... the last accepted with the target near the view's centre
         self._prev = view               # last accepted frame's region ...
         self._prev_pts = kf.pts.copy()  # ... and the features to follow from it
         self.lost = False
@@ -835,6 +853,8 @@ class FeatureTracker(Tracker):
         self._window = float(window_px)
         k = max(3, int(self._window // 2) | 1)
         self._fov_inner = cv2.erode(self._fov, np.ones((k, k), np.uint8))  # keyframes only from here
+        x, y, bw, bh = cv2.boundingRect(self._fov)
+        self._fov_centre, self._fov_radius = np.array([x + 0.5 * bw, y + 0.5 * bh]), 0.5 * max(bw, bh, 1)
         self._fov_sum = cv2.integral(self._fov // 255)  # for the share of a window inside the view
         self._vel = np.zeros(2)
         self._vel_known = False
@@ -1320,7 +1340,7 @@ class FeatureTracker(Tracker):
         self._pos = est
         self._misses = 0
         self.lost = False
-        self._from_anchor = new_from_anchor
+        self._set_from_anchor(new_from_anchor, est)
         self._prev = view
         if len(next_pts) < s.max_features // 2:
             extra = self._features(view, est, 0.5 * self._window)
@@ -1468,13 +1488,13 @@ class FeatureTracker(Tracker):
             kf.band = _band(kf.view.gray, *self._BAND_FULL), self._band_valid(kf.view.fov, kf.view.sat, 1.0)
         return kf.band
 
-    def _dense_template(self, kf: _Keyframe, scale: float) -> tuple[np.ndarray, float] | None:
+    def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or 0.5)
-        to the scale and rotation of the last accepted view; highlights and what lies outside the
+        to the scale and rotation of the view ``from_anchor`` (anchor -> that view); highlights and what lies outside the
         field of view are zero (neutral for the correlation). Returns (template, its texture energy
         per valid pixel) or None when too little of it is usable."""
         bp, valid = self._kf_band(kf)
-        rel = self._from_anchor @ _inv(kf.from_anchor)   # keyframe -> last accepted frame
+        rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
         half = int(round(0.5 * self._window * scale))
         side = 2 * half + 1
@@ -1540,36 +1560,43 @@ class FeatureTracker(Tracker):
             kf.self_ncc = float(score.max())
         return kf.self_ncc
 
-    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float] | None:
+    def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float, bool, np.ndarray] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
-        resolution, refined at full resolution), with its keyframe and correlation, if it stands
-        out: correlation >= ``dense_reacquire_ncc`` and ``dense_reacquire_lead`` times that
-        of any other place. Glints are filled smoothly before band-passing, so a glint
+        resolution, refined at full resolution), with its keyframe, correlation and whether it is
+        strong, and the view similarity its template was resampled to, if it stands out: correlation >= ``dense_reacquire_ncc`` and ``dense_streak_lead``
+        times that of any other place (strong: ``dense_reacquire_lead`` times). Glints are filled smoothly before band-passing, so a glint
         (which stays put in the image while the tissue moves) cannot be matched."""
         s = self.settings
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
-            anchor = None
-            for kf in dict.fromkeys(kfs):  # unique, in order
-                small, full = self._dense_template(kf, 0.5), self._dense_template(kf, 1.0)
-                if kf is self._anchor:
-                    anchor = full
-                # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
-                if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
-                    continue
-                # A later keyframe's window with much more texture than the selection's that does not
-                # look like it (both seen at the current view's scale and rotation) holds something new
-                # and strong: an instrument's edge coming over the target (its outline then dominates
-                # a weak template, and the search finds the instrument: seed 3's retina `occlusion`,
-                # 2.5x the energy, correlation 0.15, re-locked 160 px off on it). A sharp view of a
-                # blurred selection has more texture too, but correlates with it (0.65, seed 4's
-                # retina `blur`); a view near the edge of the field of view (`leave`) correlates
-                # little (-0.1-0.4) but has no more texture.
-                if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
-                        and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
-                    continue
-                self._dense_tpl.append((kf, small[0], full[0], _halved(small[0])))
+            views = [self._from_anchor]
+            sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
+            if abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0):
+                # lost near the edge, where the distortion shrank the tracked scale: the target may
+                # come back at either scale (still compressed at the edge, as it was near the centre)
+                views.append(self._central_from_anchor)
+            for view_sim in views:
+                anchor = None
+                for kf in dict.fromkeys(kfs):  # unique, in order
+                    small, full = self._dense_template(kf, 0.5, view_sim), self._dense_template(kf, 1.0, view_sim)
+                    if kf is self._anchor:
+                        anchor = full
+                    # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
+                    if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
+                        continue
+                    # A later keyframe's window with much more texture than the selection's that does
+                    # not look like it (both seen at the view's scale and rotation) holds something new
+                    # and strong: an instrument's edge coming over the target (its outline then
+                    # dominates a weak template, and the search finds the instrument: seed 3's retina
+                    # `occlusion`, 2.5x the energy, correlation 0.15, re-locked 160 px off on it). A
+                    # sharp view of a blurred selection has more texture too, but correlates with it
+                    # (0.65, seed 4's retina `blur`); a view near the edge of the field of view
+                    # (`leave`) correlates little (-0.1-0.4) but has no more texture.
+                    if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
+                            and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
+                        continue
+                    self._dense_tpl.append((kf, small[0], full[0], _halved(small[0]), view_sim))
         if not self._dense_tpl:
             return None
         img, fov, origin = self._dense_image(frame)
@@ -1597,26 +1624,38 @@ class FeatureTracker(Tracker):
                 else:
                     self.stats["dense_presearch_skips"] += 1
             tpls = keep
-        best = None
-        for kf, small, full, _ in tpls:
+        peaks = []
+        for kf, small, full, _, view_sim in tpls:
             half = small.shape[0] // 2
             score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
-            if top >= s.dense_reacquire_ncc and top >= s.dense_reacquire_lead * second and \
-                    (best is None or top > best[2]):
-                best = (2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, full)
+            peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full,
+                          view_sim))
+        at_anchor = [p for p, kf, *_ in peaks if kf is self._anchor]
+        best = None
+        for p, kf, top, second, full, view_sim in peaks:
+            strong = top >= s.dense_reacquire_lead * second
+            # A weak candidate (dense_streak_lead) of a later keyframe only where the selection's own
+            # template peaks too: a later keyframe may hold an instrument's edge, which leads a little,
+            # steadily, where the instrument goes (seed 2's coffee `occlusion`: 0.55 leading 1.4 on six
+            # consecutive frames, 185 px from the target and from the selection's peak).
+            weak = top >= s.dense_streak_lead * second and (
+                kf is self._anchor or s.dense_streak_any_keyframe
+                or any(np.hypot(*(p - q)) <= s.dense_agree_px for q in at_anchor))
+            if top >= s.dense_reacquire_ncc and (strong or weak) and (best is None or top > best[2]):
+                best = (p, kf, top, full, strong, view_sim)
         if best is None:
             return None
-        p0, kf, top, full = best
+        p0, kf, top, full, strong, view_sim = best
         # Full resolution, within a few px of the half-resolution peak.
         base = self._crop(frame, p0)
         fine = _match_around(_band(base.gray, *self._BAND_FULL), full, p0 - base.to_frame[:2, 2], 4)
         if fine is None or fine[1] < s.dense_reacquire_ncc:
             # The finest texture is gone (motion blur): the half-resolution place stands (the
             # confirmation on the next frame and the keyframe's refinement follow).
-            return p0, kf, top
-        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1])
+            return p0, kf, top, strong, view_sim
+        return fine[0] + base.to_frame[:2, 2], kf, min(top, fine[1]), strong, view_sim
 
     def _reacquire_dense(self, frame: np.ndarray) -> TrackResult | None:
         """Dense re-acquisition: a candidate from :meth:`_dense_search` is accepted on the next frame
@@ -1624,59 +1663,76 @@ class FeatureTracker(Tracker):
         surroundings followed by correlation): one good-looking frame is not enough."""
         s = self.settings
         cand, self._cand = self._cand, None
-        # A candidate must lead every other place again on the next frame, where the tissue around it
-        # went: a lower lead there (1.3 was tried) confirmed a wrong place of the fundus that led 1.70
-        # and then 1.52 (seed 3's retina `leave`, target out of view), as often as it confirmed the target.
+        # A strong candidate must lead every other place strongly again on the next frame, where the
+        # tissue around it went: a lower lead there (1.3 was tried) confirmed a wrong place of the
+        # fundus that led 1.70 and then 1.52 (seed 3's retina `leave`, target out of view), as often
+        # as it confirmed the target. Weaker leads need a longer streak (dense_streak_frames).
         found = self._dense_search(frame)
         if found is None:
             return None
-        p, kf, top = found
+        p, kf, top, strong, view_sim = found
+        streak = 1
         view = self._crop(frame, p)
         img = _band(view.gray, *self._BAND_FULL)
         half = int(round(0.5 * self._window))
         if cand is not None:
-            q, patch = cand
+            q, patch, cand_streak, cand_strong = cand
             # where the tissue around the previous candidate went (at most a jump away)
             r = int(min(s.max_jump_px * self._steps, s.search_margin_px))
             again = _match_around(img, patch, q - view.to_frame[:2, 2], r)
-            if again is not None:
-                moved = again[0] + view.to_frame[:2, 2]
-                if again[1] >= s.dense_reacquire_ncc and np.hypot(*(moved - p)) <= s.dense_confirm_px:
-                    rel = _similarity(self._from_anchor @ _inv(kf.from_anchor), kf.target)
-                    key_to_cur = rel.copy()
-                    key_to_cur[:2, 2] += p - _apply(rel, kf.target)
-                    # Refined like a tracked frame: the keyframe's corners (affine: follows the lens
-                    # distortion), else its dense window (ECC); the template's place is only a seed.
-                    # Without either (too weak a texture), the template's place is followed but not
-                    # reported until the next frame tracks it (near the edge of the view the lens
-                    # distortion deforms the template: its place may be several px off).
-                    km, _, kdst, wv = self._match_keyframe(view, kf, key_to_cur)
-                    dense = self._match_dense(kf, key_to_cur, wv) if km is None else None
-                    if km is not None:
-                        key_to_cur = km[0]
-                    elif dense is not None:
-                        key_to_cur = dense[0]
-                    p_ref = _apply(key_to_cur, kf.target)
-                    if np.hypot(*(p_ref - p)) > s.dense_confirm_px + 4.0 or not self._in_view(p_ref):
-                        return None
-                    p = p_ref
-                    key_to_cur = _similarity(key_to_cur, kf.target)
-                    pts = self._features(view, p, 0.5 * self._window, 0.1 * s.feature_quality)
-                    # the target's own patch must look like the keyframe's (as on every tracked frame)
-                    ncc, _, _ = self._patch_similarity(view, kf, key_to_cur)
-                    if ncc < s.patch_reject_ncc:
-                        return None
-                    self.stats["dense_reacquisitions"] += 1
-                    res = self._relocked(p, kf, key_to_cur, view, pts, 0.5 * top)
-                    if km is None and dense is None:  # tentative: reported once the next frame tracks
-                        # it, lost again at its first miss
-                        self._misses = s.max_misses
-                        return TrackResult(np.full(2, np.nan), 0.0, False, True)
-                    return res
+            followed = again is not None and again[1] >= s.dense_reacquire_ncc and \
+                np.hypot(*(again[0] + view.to_frame[:2, 2] - p)) <= s.dense_confirm_px
+            if followed:
+                streak = cand_streak + 1
+            # Accepted after two strong frames, or after a streak of weaker ones: a target coming back
+            # through the distorted, dim edge of the view and blurred by its motion leads its
+            # surroundings by only 1.3-1.7 for many frames (seed 0's retina `leave`: the top place,
+            # within 5 px of the target, on every search of frames 48-54, strong on one of them,
+            # re-locked by ORB at frame 64), while a wrong place that once leads strongly rarely
+            # keeps the lead on several consecutive frames.
+            if followed and ((cand_strong and strong) or streak >= s.dense_streak_frames):
+                rel = _similarity(view_sim @ _inv(kf.from_anchor), kf.target)
+                key_to_cur = rel.copy()
+                key_to_cur[:2, 2] += p - _apply(rel, kf.target)
+                # Refined like a tracked frame: the keyframe's corners (affine: follows the lens
+                # distortion), else its dense window (ECC); the template's place is only a seed.
+                # Without either (too weak a texture), the template's place is followed but not
+                # reported until the next frame tracks it (near the edge of the view the lens
+                # distortion deforms the template: its place may be several px off).
+                km, _, kdst, wv = self._match_keyframe(view, kf, key_to_cur)
+                dense = self._match_dense(kf, key_to_cur, wv) if km is None else None
+                if km is not None:
+                    key_to_cur = km[0]
+                elif dense is not None:
+                    key_to_cur = dense[0]
+                p_ref = _apply(key_to_cur, kf.target)
+                if np.hypot(*(p_ref - p)) > s.dense_confirm_px + 4.0 or not self._in_view(p_ref):
+                    return None
+                p = p_ref
+                key_to_cur = _similarity(key_to_cur, kf.target)
+                pts = self._features(view, p, 0.5 * self._window, 0.1 * s.feature_quality)
+                # the target's own patch must look like the keyframe's (as on every tracked frame)
+                ncc, _, _ = self._patch_similarity(view, kf, key_to_cur)
+                if ncc < s.patch_reject_ncc:
+                    return None
+                self.stats["dense_reacquisitions"] += 1
+                res = self._relocked(p, kf, key_to_cur, view, pts, 0.5 * top)
+                if km is None and dense is None:  # tentative: reported once the next frame tracks
+                    # it, lost again at its first miss
+                    self._misses = s.max_misses
+                    return TrackResult(np.full(2, np.nan), 0.0, False, True)
+                return res
         c = np.round(p - view.to_frame[:2, 2]).astype(int)
         if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
-            self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy()
+            self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy(), streak, strong
         return None
+
+    def _set_from_anchor(self, from_anchor: np.ndarray, est: np.ndarray) -> None:
+        """Accept ``from_anchor`` (anchor -> this frame) for the target at ``est`` (px); also as the
+        central one (:attr:`TrackerSettings.dense_central_radius`) when ``est`` is near the view's centre."""
+        self._from_anchor = from_anchor
+        if np.hypot(*(est - self._fov_centre)) <= self.settings.dense_central_radius * self._fov_radius:
+            self._central_from_anchor = from_anchor
 
     def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
                   conf: float) -> TrackResult:
@@ -1690,7 +1746,7 @@ class FeatureTracker(Tracker):
         self._vel_known = False
         self._misses = 0
         self.lost = False
-        self._from_anchor = key_to_cur @ kf.from_anchor
+        self._set_from_anchor(key_to_cur @ kf.from_anchor, est)
         self._key = kf
         self._prev = view
         self._prev_pts = np.asarray(pts, np.float32).reshape(-1, 2)
