@@ -545,7 +545,7 @@ class FeatureTracker(Tracker):
         box = (slice(y, y + h), slice(x, x + w))  # the rest only where there are candidates
         c, g = cand[box], gray[box]
         if bgr.ndim == 3:
-            ch = cv2.split(bgr[box])
+            ch = cv2.split(np.ascontiguousarray(bgr[box]))  # a contiguous copy first: 2x faster split
             lo, hi = cv2.min(cv2.min(ch[0], ch[1]), ch[2]), cv2.max(cv2.max(ch[0], ch[1]), ch[2])
             # colour saturation 1 - lo/hi <= highlight_max_chroma
             white = lo.astype(np.float32) >= (1.0 - s.highlight_max_chroma) * hi.astype(np.float32)
