@@ -521,6 +521,7 @@ class FeatureTracker(Tracker):
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
+        self._crops: dict | None = None  # preprocessed regions of the frame being updated, by (x0, y0, smoothing)
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -605,10 +606,16 @@ class FeatureTracker(Tracker):
         side = self._side
         x0 = int(min(max(0, round(centre[0] - side / 2)), w - side))
         y0 = int(min(max(0, round(centre[1] - side / 2)), h - side))
+        key = (x0, y0, self._smooth)
+        if self._crops is not None and key in self._crops:
+            return self._crops[key]
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         fov = self._fov[y0:y0 + side, x0:x0 + side]
-        return self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+        view = self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+        if self._crops is not None:
+            self._crops[key] = view
+        return view
 
     def _smoothed(self, view: _View) -> _View:
         """``view`` with its gray smoothed when the sensor is noisy (``denoise_px``, set at selection)."""
@@ -1141,6 +1148,16 @@ class FeatureTracker(Tracker):
         return key_to_pred @ _translation(d), float(top)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
+        # The same region of this frame is often preprocessed twice (the exposure retry, the
+        # phase correlation's region): made once per frame (the frame may be a reused buffer, so
+        # never across frames).
+        self._crops = {}
+        try:
+            return self._update(frame_bgr, capture_time)
+        finally:
+            self._crops = None
+
+    def _update(self, frame_bgr: np.ndarray, capture_time: float | None) -> TrackResult:
         s = self.settings
         self.stats["frames"] += 1
         if self._anchor is None:
