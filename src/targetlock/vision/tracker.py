@@ -431,6 +431,7 @@ class _View:
     fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
     zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+    high: np.ndarray | None = None  # high-passed gray (phase correlation, ECC), made on first use
     sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
     gain: float = 1.0               # gray = gain * raw + zero
 
@@ -452,6 +453,13 @@ class _View:
             a = np.partition(a, (k1, k2)) if a.size else a
             self.sigma = float((a[k1] + a[k2]) / 2) / (6.0 * 0.6745) if a.size else math.nan
         return self.sigma
+
+    def detail(self) -> np.ndarray:
+        """:func:`_detail` of ``gray``, made once (a region is correlated again on an exposure retry,
+        a keyframe's on every ECC match)."""
+        if self.high is None:
+            self.high = _detail(self.gray)
+        return self.high
 
     def local(self) -> np.ndarray:
         """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
@@ -477,7 +485,6 @@ class _Keyframe:
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
     patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
-    detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
     self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
     # the target (an edge or a repeated texture matches elsewhere too), made on first use
@@ -935,7 +942,7 @@ class FeatureTracker(Tracker):
         fov = self._fov[y0:y0 + self._side, x0:x0 + self._side].astype(np.float32)
         win = self._hann * cv2.blur(cv2.erode(fov, np.ones((9, 9), np.uint8)), (17, 17)) * (1.0 / 255.0)
         # high-pass: the static light fall-off would also peak at zero shift
-        (dx, dy), response = cv2.phaseCorrelate(_detail(self._prev.gray), _detail(same.gray), win)
+        (dx, dy), response = cv2.phaseCorrelate(self._prev.detail(), same.detail(), win)
         if response < 0.05 or math.hypot(dx, dy) > self._side / 3:
             return None
         return np.array([dx, dy])
@@ -1102,12 +1109,10 @@ class FeatureTracker(Tracker):
         box = (slice(y0, y1), slice(x0, x1))
         if np.count_nonzero(kf.view.sat[box]) > 0.5 * (y1 - y0) * (x1 - x0):
             return None
-        if kf.detail is None:
-            kf.detail = _detail(kf.view.gray)
         warp = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0]], np.float32)
         try:  # high-passed (the light fall-off moves with the camera, not with the tissue); the
             # mask (of the input region) leaves this frame's highlights out
-            rho, warp = cv2.findTransformECC(kf.detail[box], _detail(wv.gray), warp, cv2.MOTION_TRANSLATION,
+            rho, warp = cv2.findTransformECC(kf.view.detail()[box], wv.detail(), warp, cv2.MOTION_TRANSLATION,
                                              self._ecc_crit, (~wv.sat).view(np.uint8), 5)
         except cv2.error:  # did not converge
             return None
