@@ -528,7 +528,8 @@ class FeatureTracker(Tracker):
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
-        self._crops: dict | None = None  # preprocessed regions of the frame being updated, by (x0, y0, smoothing)
+        self._per_frame: dict | None = None  # what is made of the frame being updated: its preprocessed
+        # regions by (x0, y0, smoothing), "shift": (last accepted view, its phase-correlation shift)
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -614,14 +615,14 @@ class FeatureTracker(Tracker):
         x0 = int(min(max(0, round(centre[0] - side / 2)), w - side))
         y0 = int(min(max(0, round(centre[1] - side / 2)), h - side))
         key = (x0, y0, self._smooth)
-        if self._crops is not None and key in self._crops:
-            return self._crops[key]
+        if self._per_frame is not None and key in self._per_frame:
+            return self._per_frame[key]
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         fov = self._fov[y0:y0 + side, x0:x0 + side]
         view = self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
-        if self._crops is not None:
-            self._crops[key] = view
+        if self._per_frame is not None:
+            self._per_frame[key] = view
         return view
 
     def _smoothed(self, view: _View) -> _View:
@@ -929,7 +930,15 @@ class FeatureTracker(Tracker):
         return 0 <= x < w and 0 <= y < h and m[y, x] > 0
 
     def _coarse_shift(self, frame: np.ndarray) -> np.ndarray | None:
-        """Translation (px) of the last accepted region into ``frame``, by phase correlation."""
+        """Translation (px) of the last accepted region into ``frame``, by phase correlation (once per
+        update: the exposure retry asks again)."""
+        cache = self._per_frame if self._per_frame is not None else {}
+        hit = cache.get("shift")
+        if hit is None or hit[0] is not self._prev:
+            hit = cache["shift"] = (self._prev, self._phase_shift(frame))
+        return None if hit[1] is None else hit[1].copy()
+
+    def _phase_shift(self, frame: np.ndarray) -> np.ndarray | None:
         off = self._prev.to_frame[:2, 2]
         same = self._crop(frame, off + self._side / 2)
         if np.any(same.to_frame[:2, 2] != off):
@@ -1154,13 +1163,13 @@ class FeatureTracker(Tracker):
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         # The same region of this frame is often preprocessed twice (the exposure retry, the
-        # phase correlation's region): made once per frame (the frame may be a reused buffer, so
-        # never across frames).
-        self._crops = {}
+        # phase correlation's region), and the retry repeats the phase correlation: made once per
+        # frame (the frame may be a reused buffer, so never across frames).
+        self._per_frame = {}
         try:
             return self._update(frame_bgr, capture_time)
         finally:
-            self._crops = None
+            self._per_frame = None
 
     def _update(self, frame_bgr: np.ndarray, capture_time: float | None) -> TrackResult:
         s = self.settings
