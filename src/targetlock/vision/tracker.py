@@ -431,6 +431,7 @@ class _View:
     fov: np.ndarray          # field-of-view mask of the region (uint8, 255 inside)
     zero: float = 0.0        # level of ``gray`` that a black raw pixel maps to (gray = gain * raw + zero)
     flat: np.ndarray | None = None  # gray with the local mean removed (exposure retry), made on first use
+    high: np.ndarray | None = None  # high-passed gray (phase correlation, ECC), made on first use
     sigma: float | None = None      # sensor noise of ``gray`` (levels), estimated on first use
     gain: float = 1.0               # gray = gain * raw + zero
 
@@ -446,8 +447,19 @@ class _View:
             box = self.gray[h // 2 - q:h // 2 + q, w // 2 - q:w // 2 + q].astype(np.float32)
             resp = cv2.filter2D(box, -1, self._LAPLACE)[1:-1, 1:-1]
             # for white noise of std s the response has std 6 s; median |N(0, 1)| = 0.6745
-            self.sigma = float(np.median(np.abs(resp[::2, ::2]))) / (6.0 * 0.6745)  # every 4th: enough samples
+            # every 4th: enough samples; the median by partition (np.median's NaN handling costs 2x)
+            a = np.abs(resp[::2, ::2]).ravel()
+            k1, k2 = (a.size - 1) // 2, a.size // 2
+            a = np.partition(a, (k1, k2)) if a.size else a
+            self.sigma = float((a[k1] + a[k2]) / 2) / (6.0 * 0.6745) if a.size else math.nan
         return self.sigma
+
+    def detail(self) -> np.ndarray:
+        """:func:`_detail` of ``gray``, made once (a region is correlated again on an exposure retry,
+        a keyframe's on every ECC match)."""
+        if self.high is None:
+            self.high = _detail(self.gray)
+        return self.high
 
     def local(self) -> np.ndarray:
         """``gray`` with its local mean (Gaussian, sigma 5 px) removed, around 128: brightness
@@ -473,7 +485,6 @@ class _Keyframe:
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
     # energy), made on first use
     patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
-    detail: np.ndarray | None = None  # high-passed gray of the region (ECC match), made on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
     self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
     # the target (an edge or a repeated texture matches elsewhere too), made on first use
@@ -517,6 +528,8 @@ class FeatureTracker(Tracker):
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
+        self._per_frame: dict | None = None  # what is made of the frame being updated: its preprocessed
+        # regions by (x0, y0, smoothing), "shift": (last accepted view, its phase-correlation shift)
         self.selection: dict | None = None
         """How the last successful :meth:`select` found its features (window, quality, masking)."""
 
@@ -545,17 +558,21 @@ class FeatureTracker(Tracker):
         box = (slice(y, y + h), slice(x, x + w))  # the rest only where there are candidates
         c, g = cand[box], gray[box]
         if bgr.ndim == 3:
-            ch = cv2.split(bgr[box])
+            ch = cv2.split(np.ascontiguousarray(bgr[box]))  # a contiguous copy first: 2x faster split
             lo, hi = cv2.min(cv2.min(ch[0], ch[1]), ch[2]), cv2.max(cv2.max(ch[0], ch[1]), ch[2])
             # colour saturation 1 - lo/hi <= highlight_max_chroma
-            white = lo.astype(np.float32) >= (1.0 - s.highlight_max_chroma) * hi.astype(np.float32)
-            c = np.where(white, c, np.uint8(0))
+            white = cv2.compare(lo.astype(np.float32), (1.0 - s.highlight_max_chroma) * hi.astype(np.float32),
+                                cv2.CMP_GE)
+            c = cv2.bitwise_and(c, white)
         n, labels, st, _ = cv2.connectedComponentsWithStats(c, connectivity=8, ltype=cv2.CV_16U)
+        cpos = c > 0
         glint = np.zeros(n, bool)  # small blobs that reach near saturation
-        glint[labels[(c > 0) & (g >= peak)]] = True
+        glint[labels[cpos & (g >= peak)]] = True
         glint &= st[:, cv2.CC_STAT_AREA] <= s.highlight_max_blob_px
         glint[0] = False
-        sat = (glint[labels] if n > 1 else np.zeros(c.shape, bool)) | ((c > 0) & (g >= 250))
+        sat = cpos & (g >= 250)
+        if n > 1:
+            sat |= glint[labels]
         n_sat = int(np.count_nonzero(sat))
         n_fov = int(np.count_nonzero(fov))
         if n_sat > s.highlight_max_share * n_fov:  # keep the brightest, up to the cap
@@ -597,10 +614,16 @@ class FeatureTracker(Tracker):
         side = self._side
         x0 = int(min(max(0, round(centre[0] - side / 2)), w - side))
         y0 = int(min(max(0, round(centre[1] - side / 2)), h - side))
+        key = (x0, y0, self._smooth)
+        if self._per_frame is not None and key in self._per_frame:
+            return self._per_frame[key]
         bgr = frame[y0:y0 + side, x0:x0 + side]
         raw = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
         fov = self._fov[y0:y0 + side, x0:x0 + side]
-        return self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+        view = self._smoothed(self._normalise(raw, fov, self._highlights(bgr, raw, fov), _translation((x0, y0))))
+        if self._per_frame is not None:
+            self._per_frame[key] = view
+        return view
 
     def _smoothed(self, view: _View) -> _View:
         """``view`` with its gray smoothed when the sensor is noisy (``denoise_px``, set at selection)."""
@@ -907,7 +930,15 @@ class FeatureTracker(Tracker):
         return 0 <= x < w and 0 <= y < h and m[y, x] > 0
 
     def _coarse_shift(self, frame: np.ndarray) -> np.ndarray | None:
-        """Translation (px) of the last accepted region into ``frame``, by phase correlation."""
+        """Translation (px) of the last accepted region into ``frame``, by phase correlation (once per
+        update: the exposure retry asks again)."""
+        cache = self._per_frame if self._per_frame is not None else {}
+        hit = cache.get("shift")
+        if hit is None or hit[0] is not self._prev:
+            hit = cache["shift"] = (self._prev, self._phase_shift(frame))
+        return None if hit[1] is None else hit[1].copy()
+
+    def _phase_shift(self, frame: np.ndarray) -> np.ndarray | None:
         off = self._prev.to_frame[:2, 2]
         same = self._crop(frame, off + self._side / 2)
         if np.any(same.to_frame[:2, 2] != off):
@@ -920,7 +951,7 @@ class FeatureTracker(Tracker):
         fov = self._fov[y0:y0 + self._side, x0:x0 + self._side].astype(np.float32)
         win = self._hann * cv2.blur(cv2.erode(fov, np.ones((9, 9), np.uint8)), (17, 17)) * (1.0 / 255.0)
         # high-pass: the static light fall-off would also peak at zero shift
-        (dx, dy), response = cv2.phaseCorrelate(_detail(self._prev.gray), _detail(same.gray), win)
+        (dx, dy), response = cv2.phaseCorrelate(self._prev.detail(), same.detail(), win)
         if response < 0.05 or math.hypot(dx, dy) > self._side / 3:
             return None
         return np.array([dx, dy])
@@ -1087,12 +1118,10 @@ class FeatureTracker(Tracker):
         box = (slice(y0, y1), slice(x0, x1))
         if np.count_nonzero(kf.view.sat[box]) > 0.5 * (y1 - y0) * (x1 - x0):
             return None
-        if kf.detail is None:
-            kf.detail = _detail(kf.view.gray)
         warp = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0]], np.float32)
         try:  # high-passed (the light fall-off moves with the camera, not with the tissue); the
             # mask (of the input region) leaves this frame's highlights out
-            rho, warp = cv2.findTransformECC(kf.detail[box], _detail(wv.gray), warp, cv2.MOTION_TRANSLATION,
+            rho, warp = cv2.findTransformECC(kf.view.detail()[box], wv.detail(), warp, cv2.MOTION_TRANSLATION,
                                              self._ecc_crit, (~wv.sat).view(np.uint8), 5)
         except cv2.error:  # did not converge
             return None
@@ -1133,6 +1162,16 @@ class FeatureTracker(Tracker):
         return key_to_pred @ _translation(d), float(top)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
+        # The same region of this frame is often preprocessed twice (the exposure retry, the
+        # phase correlation's region), and the retry repeats the phase correlation: made once per
+        # frame (the frame may be a reused buffer, so never across frames).
+        self._per_frame = {}
+        try:
+            return self._update(frame_bgr, capture_time)
+        finally:
+            self._per_frame = None
+
+    def _update(self, frame_bgr: np.ndarray, capture_time: float | None) -> TrackResult:
         s = self.settings
         self.stats["frames"] += 1
         if self._anchor is None:
