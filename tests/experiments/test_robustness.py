@@ -1,8 +1,10 @@
 import math
 
 import numpy as np
+import pytest
 
-from targetlock.experiments.robustness import MOTIONS, draw_cases, run_robustness, score
+from targetlock.config import ConfigError
+from targetlock.experiments.robustness import MOTIONS, case_config, draw_cases, parse_controllers, run_robustness, score
 
 
 def test_cases_are_seeded_and_within_the_stated_ranges():
@@ -64,10 +66,6 @@ def test_the_benchmark_on_dask_workers_gives_the_same_scores():
 
 
 def test_controller_names_take_a_knowledge_source_and_bad_ones_name_what_is_allowed(tmp_path):
-    import pytest
-
-    from targetlock.config import ConfigError
-    from targetlock.experiments.robustness import case_config, parse_controllers
     assert parse_controllers("pi, adaptive+oracle-endoscope") == ("pi", "adaptive+oracle-endoscope")
     for bad in ("adaptive+truth", "mpc", ""):
         with pytest.raises(ConfigError, match="--controllers"):

@@ -303,7 +303,8 @@ def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = Non
         raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
     r = run_robustness(n_cases, seed, controllers=controllers, workers=workers)
     print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
-          f"unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
+          f"unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view = image "
+          f"half diagonal), ratios to PI (I = 300)")
     print("\n".join(format_table(r["summary"])))
     print(f"({r['wall_seconds']:.0f} s " + (f"on {workers} Dask workers)" if workers else "on one core)"))
     return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],

@@ -1528,9 +1528,9 @@ class FeatureTracker(Tracker):
         return kf.band
 
     def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or 0.5)
-        to the scale and rotation of the view ``from_anchor`` (anchor -> that view); highlights and what lies outside the
-        field of view are zero (neutral for the correlation). Returns (template, its texture energy
+        """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or
+        0.5) to the scale and rotation of the view ``from_anchor`` (anchor -> that view); highlights
+        and what lies outside the field of view are zero (neutral for the correlation). Returns (template, its texture energy
         per valid pixel) or None when too little of it is usable."""
         bp, valid = self._kf_band(kf)
         rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
@@ -1601,10 +1601,12 @@ class FeatureTracker(Tracker):
 
     def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float, bool, np.ndarray] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
-        resolution, refined at full resolution), with its keyframe, correlation and whether it is
-        strong, and the view similarity its template was resampled to, if it stands out: correlation >= ``dense_reacquire_ncc`` and ``dense_streak_lead``
-        times that of any other place (strong: ``dense_reacquire_lead`` times). Glints are filled smoothly before band-passing, so a glint
-        (which stays put in the image while the tissue moves) cannot be matched."""
+        resolution, refined at full resolution), with its keyframe, correlation, whether it is
+        strong, and the view similarity its template was resampled to, if it stands out:
+        correlation >= ``dense_reacquire_ncc`` and ``dense_streak_lead`` times that of any other
+        place (strong: ``dense_reacquire_lead`` times). Glints are filled smoothly before
+        band-passing, so a glint (which stays put in the image while the tissue moves) cannot be
+        matched."""
         s = self.settings
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
