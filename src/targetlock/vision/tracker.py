@@ -254,6 +254,81 @@ def _peaks(score: np.ndarray, radius: int) -> tuple[tuple[int, int], float, floa
     return loc, float(top), float(second)
 
 
+class _Spectrum:
+    """One image prepared for :meth:`match`: ``cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)`` of
+    several templates by DFT, with the image's spectrum and window statistics made once for all of
+    them and each template's spectrum once (:class:`_SpectralTemplate`), not once per search (the
+    whole-frame dense search correlates the same templates with every lost frame). Scores equal
+    OpenCV's up to float rounding (~1e-6) except in windows without content (std < 1e-3 levels:
+    the zeroed parts of a band-passed image), which score 0: OpenCV's own round-off there (0/0)
+    reads up to 0.8."""
+
+    _EMPTY = 1e-3  # std (levels) of a window without content
+
+    def __init__(self, img: np.ndarray) -> None:
+        h, w = img.shape
+        self.img = img
+        self.size = (cv2.getOptimalDFTSize(h), cv2.getOptimalDFTSize(w))
+        pad = cv2.copyMakeBorder(img, 0, self.size[0] - h, 0, self.size[1] - w, cv2.BORDER_CONSTANT, value=0)
+        self.spectrum = cv2.dft(pad)
+        self._inv: dict = {}  # template shape -> 1 / sqrt(sum of squared deviations) per window, 0 if empty
+
+    def _inv_spread(self, th: int, tw: int) -> np.ndarray:
+        out = self._inv.get((th, tw))
+        if out is None:
+            h, w = self.img.shape
+            n = th * tw
+            # window sums by box filters (double accumulators inside), the valid part
+            box = dict(ddepth=cv2.CV_32F, ksize=(tw, th), anchor=(0, 0), normalize=False,
+                       borderType=cv2.BORDER_CONSTANT)
+            s = cv2.boxFilter(self.img, **box)[:h - th + 1, :w - tw + 1]
+            q = cv2.sqrBoxFilter(self.img, **box)[:h - th + 1, :w - tw + 1]
+            var = cv2.subtract(q, cv2.multiply(s, s, scale=1.0 / n))
+            floor = self._EMPTY ** 2 * n
+            empty = var < floor
+            out = 1.0 / cv2.sqrt(cv2.max(var, floor))  # (the floor also keeps denormals out: slow)
+            out[empty] = 0.0
+            self._inv[(th, tw)] = out
+        return out
+
+    def match(self, tpl: "_SpectralTemplate") -> np.ndarray:
+        """The TM_CCOEFF_NORMED map (float32, (h - th + 1, w - tw + 1)) of ``tpl`` over the image."""
+        th, tw = tpl.shape
+        h, w = self.img.shape
+        if tpl.norm < np.finfo(float).eps:
+            return np.ones((h - th + 1, w - tw + 1), np.float32)
+        num = cv2.idft(cv2.mulSpectrums(self.spectrum, tpl.spectrum(self.size), 0, conjB=True),
+                       flags=cv2.DFT_REAL_OUTPUT)[:h - th + 1, :w - tw + 1]
+        # the inverse DFT's 1 / (rows x cols) folded into the template's norm
+        score = cv2.multiply(num, self._inv_spread(th, tw), scale=1.0 / (tpl.norm * self.size[0] * self.size[1]))
+        lo, hi, _, _ = cv2.minMaxLoc(score)
+        if hi >= 1.0 or lo <= -1.0:  # round-off beyond +-1 (OpenCV: +-1 up to 1.125, else 0)
+            a = np.abs(score)
+            score[a >= 1.0] = np.where(a[a >= 1.0] < 1.125, np.sign(score[a >= 1.0]), 0.0)
+        return score
+
+
+class _SpectralTemplate:
+    """A fixed template for :meth:`_Spectrum.match`: mean-free, its norm, and its spectrum per DFT
+    size, made on first use."""
+
+    def __init__(self, tpl: np.ndarray) -> None:
+        self.shape = tpl.shape
+        t = tpl.astype(np.float64)
+        t -= t.mean()
+        self.norm = float(math.sqrt(float(np.sum(t * t))))
+        self._tpl = t.astype(np.float32)
+        self._spectra: dict = {}
+
+    def spectrum(self, size: tuple[int, int]) -> np.ndarray:
+        out = self._spectra.get(size)
+        if out is None:
+            th, tw = self.shape
+            pad = cv2.copyMakeBorder(self._tpl, 0, size[0] - th, 0, size[1] - tw, cv2.BORDER_CONSTANT, value=0)
+            out = self._spectra[size] = cv2.dft(pad)
+        return out
+
+
 def _match_around(img: np.ndarray, tpl: np.ndarray, centre: np.ndarray, r: int) -> tuple[np.ndarray, float] | None:
     """Best place (px of ``img``, sub-pixel) of the square template ``tpl`` (odd side) within ``r`` px of
     ``centre`` (px of ``img``), and its normalised correlation; None when that neighbourhood leaves ``img``."""
@@ -503,7 +578,6 @@ class FeatureTracker(Tracker):
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                        patchSize=31, fastThreshold=10)
         self._clahe: dict = {}
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
@@ -1480,9 +1554,11 @@ class FeatureTracker(Tracker):
         owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
         query = np.concatenate([k.orb_desc for k in kfs])
         qpts = np.concatenate([k.orb_pts for k in kfs])
-        matches = self._matcher.knnMatch(query, desc, k=2)
-        good = np.array([(m[0].queryIdx, m[0].trainIdx) for m in matches
-                         if len(m) == 2 and m[0].distance < s.reacquire_ratio * m[1].distance], int).reshape(-1, 2)
+        # The two nearest frame descriptors of each keyframe descriptor (what BFMatcher.knnMatch
+        # computes, by the same function), as arrays: no DMatch objects to build and unpack.
+        dist, nearest = cv2.batchDistance(query, desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+        ratio_ok = (nearest[:, 1] >= 0) & (dist[:, 0] < s.reacquire_ratio * dist[:, 1].astype(float))
+        good = np.column_stack([np.flatnonzero(ratio_ok), nearest[ratio_ok, 0]]).astype(int).reshape(-1, 2)
         best = None
         for i, kf in enumerate(kfs):
             g = good[owner[good[:, 0]] == i] if len(good) else good
@@ -1637,7 +1713,8 @@ class FeatureTracker(Tracker):
                     if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
                             and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
                         continue
-                    self._dense_tpl.append((kf, small[0], full[0], _halved(small[0]), view_sim))
+                    self._dense_tpl.append((kf, _SpectralTemplate(small[0]), full[0],
+                                            _SpectralTemplate(_halved(small[0])), view_sim))
         if not self._dense_tpl:
             return None
         img, fov, origin = self._dense_image(frame)
@@ -1655,9 +1732,10 @@ class FeatureTracker(Tracker):
             if self._fov_quarter is None:
                 self._fov_quarter = cv2.resize(fov, img_q.shape[::-1], interpolation=cv2.INTER_NEAREST)
             keep = []
+            spec_q = _Spectrum(img_q)
             for t in tpls:
                 hq = t[3].shape[0] // 2
-                score_q = cv2.matchTemplate(img_q, t[3], cv2.TM_CCOEFF_NORMED)
+                score_q = spec_q.match(t[3])
                 score_q[self._fov_quarter[hq:hq + score_q.shape[0], hq:hq + score_q.shape[1]] == 0] = -1.0
                 _, top_q, second_q = _peaks(score_q, max(2, hq // 2))
                 if top_q >= s.dense_presearch_ncc and top_q >= s.dense_presearch_lead * second_q:
@@ -1666,9 +1744,10 @@ class FeatureTracker(Tracker):
                     self.stats["dense_presearch_skips"] += 1
             tpls = keep
         peaks = []
+        spec = _Spectrum(img) if tpls else None
         for kf, small, full, _, view_sim in tpls:
             half = small.shape[0] // 2
-            score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
+            score = spec.match(small)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
             peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full,
