@@ -599,6 +599,7 @@ class FeatureTracker(Tracker):
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
+        self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
@@ -621,14 +622,14 @@ class FeatureTracker(Tracker):
         so a bright frame never masks the target away.
         """
         s = self.settings
-        mean, std = cv2.meanStdDev(gray, mask=fov)
-        peak = min(245.0, max(200.0, float(mean[0, 0]) + 3.0 * float(std[0, 0])))
         _, cand = cv2.threshold(gray, s.saturation_level - 1, 255, cv2.THRESH_BINARY)
         cand = cv2.bitwise_and(cand, fov)
-        out = np.zeros(gray.shape, np.uint8)
+        out = np.zeros(gray.shape, bool)
         x, y, w, h = cv2.boundingRect(cand)
         if w == 0:
-            return out.view(bool)
+            return out
+        mean, std = cv2.meanStdDev(gray, mask=fov)
+        peak = min(245.0, max(200.0, float(mean[0, 0]) + 3.0 * float(std[0, 0])))
         box = (slice(y, y + h), slice(x, x + w))  # the rest only where there are candidates
         c, g = cand[box], gray[box]
         if bgr.ndim == 3:
@@ -648,14 +649,19 @@ class FeatureTracker(Tracker):
         if n > 1:
             sat |= glint[labels]
         n_sat = int(np.count_nonzero(sat))
-        n_fov = int(np.count_nonzero(fov))
-        if n_sat > s.highlight_max_share * n_fov:  # keep the brightest, up to the cap
-            k = int(s.highlight_max_share * n_fov)
+        if n_sat and n_sat > s.highlight_max_share * cv2.countNonZero(fov):  # keep the brightest, up to the cap
+            k = int(s.highlight_max_share * cv2.countNonZero(fov))
             vals = g[sat]
             q = np.partition(vals, len(vals) - k - 1)[len(vals) - k - 1] if k > 0 else 256
             sat &= g > q
-        out[box] = sat.view(np.uint8)
-        return cv2.dilate(out, self._dilate) > 0
+        # grown within the candidates' box and the margin only (nothing outside it to grow)
+        r = s.highlight_margin_px
+        gy0, gx0 = max(0, y - r), max(0, x - r)
+        gy1, gx1 = min(gray.shape[0], y + h + r), min(gray.shape[1], x + w + r)
+        grow = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
+        grow[y - gy0:y - gy0 + h, x - gx0:x - gx0 + w] = sat.view(np.uint8)
+        out[gy0:gy1, gx0:gx1] = cv2.dilate(grow, self._dilate) > 0
+        return out
 
     def _normalise(self, raw: np.ndarray, fov: np.ndarray, sat: np.ndarray, to_frame: np.ndarray) -> _View:
         """Normalised gray (mean 128, fixed contrast, statistics over tissue only), neutral outside
@@ -1589,13 +1595,22 @@ class FeatureTracker(Tracker):
     # ------------------------------------------------------- dense re-acquisition
     _BAND_FULL = (1.0, 6.0)  # band-pass sigmas (px) at full resolution; at half resolution half of them
 
-    def _band_valid(self, fov: np.ndarray, sat: np.ndarray, scale: float) -> np.ndarray:
+    def _band_valid(self, fov: np.ndarray, sat: np.ndarray, scale: float,
+                    inner: np.ndarray | None = None) -> np.ndarray:
         """uint8 mask (255: usable) of a band-passed region at ``scale``: inside the field of view and
         clear of highlights by the band-pass's reach (a glint's filled blob still leaves a ring of
-        its halo there, which would match any bright blob, e.g. a glint that stays put)."""
+        its halo there, which would match any bright blob, e.g. a glint that stays put). ``inner``:
+        :meth:`_band_inner` of ``fov``, when already made."""
         k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
         near = cv2.dilate(sat.view(np.uint8), np.ones((k, k), np.uint8))
-        return cv2.bitwise_and(cv2.erode(fov, np.ones((k, k), np.uint8)), cv2.bitwise_not(near * 255))
+        if inner is None:
+            inner = self._band_inner(fov, scale)
+        return cv2.bitwise_and(inner, cv2.bitwise_not(near * 255))
+
+    def _band_inner(self, fov: np.ndarray, scale: float) -> np.ndarray:
+        """The part of ``fov`` (uint8 mask) beyond the band-pass's reach (at ``scale``) from its edge."""
+        k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
+        return cv2.erode(fov, np.ones((k, k), np.uint8))
 
     def _kf_band(self, kf: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
         """Band-passed gray of keyframe ``kf``'s region and its usable mask (:meth:`_band_valid`)."""
@@ -1646,12 +1661,13 @@ class FeatureTracker(Tracker):
         w, h = x1 - x0, y1 - y0
         if self._fov_half is None:
             self._fov_half = cv2.resize(self._fov[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+            self._fov_half_inner = self._band_inner(self._fov_half, 0.5)  # the same on every frame
         small_bgr = cv2.resize(frame[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
         gray = cv2.cvtColor(small_bgr, cv2.COLOR_BGR2GRAY) if small_bgr.ndim == 3 else small_bgr
         fov = self._fov_half
         view = self._normalise(gray, fov, self._highlights(small_bgr, gray, fov), np.eye(3))
         img = _band(view.gray, 0.5 * self._BAND_FULL[0], 0.5 * self._BAND_FULL[1])
-        img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
+        img[self._band_valid(fov, view.sat, 0.5, self._fov_half_inner) == 0] = 0.0
         return img, fov, np.array([x0, y0], float)
 
     def _self_similarity(self, kf: _Keyframe) -> float:
