@@ -254,6 +254,81 @@ def _peaks(score: np.ndarray, radius: int) -> tuple[tuple[int, int], float, floa
     return loc, float(top), float(second)
 
 
+class _Spectrum:
+    """One image prepared for :meth:`match`: ``cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)`` of
+    several templates by DFT, with the image's spectrum and window statistics made once for all of
+    them and each template's spectrum once (:class:`_SpectralTemplate`), not once per search (the
+    whole-frame dense search correlates the same templates with every lost frame). Scores equal
+    OpenCV's up to float rounding (~1e-6) except in windows without content (std < 1e-3 levels:
+    the zeroed parts of a band-passed image), which score 0: OpenCV's own round-off there (0/0)
+    reads up to 0.8."""
+
+    _EMPTY = 1e-3  # std (levels) of a window without content
+
+    def __init__(self, img: np.ndarray) -> None:
+        h, w = img.shape
+        self.img = img
+        self.size = (cv2.getOptimalDFTSize(h), cv2.getOptimalDFTSize(w))
+        pad = cv2.copyMakeBorder(img, 0, self.size[0] - h, 0, self.size[1] - w, cv2.BORDER_CONSTANT, value=0)
+        self.spectrum = cv2.dft(pad)
+        self._inv: dict = {}  # template shape -> 1 / sqrt(sum of squared deviations) per window, 0 if empty
+
+    def _inv_spread(self, th: int, tw: int) -> np.ndarray:
+        out = self._inv.get((th, tw))
+        if out is None:
+            h, w = self.img.shape
+            n = th * tw
+            # window sums by box filters (double accumulators inside), the valid part
+            box = dict(ddepth=cv2.CV_32F, ksize=(tw, th), anchor=(0, 0), normalize=False,
+                       borderType=cv2.BORDER_CONSTANT)
+            s = cv2.boxFilter(self.img, **box)[:h - th + 1, :w - tw + 1]
+            q = cv2.sqrBoxFilter(self.img, **box)[:h - th + 1, :w - tw + 1]
+            var = cv2.subtract(q, cv2.multiply(s, s, scale=1.0 / n))
+            floor = self._EMPTY ** 2 * n
+            empty = var < floor
+            out = 1.0 / cv2.sqrt(cv2.max(var, floor))  # (the floor also keeps denormals out: slow)
+            out[empty] = 0.0
+            self._inv[(th, tw)] = out
+        return out
+
+    def match(self, tpl: "_SpectralTemplate") -> np.ndarray:
+        """The TM_CCOEFF_NORMED map (float32, (h - th + 1, w - tw + 1)) of ``tpl`` over the image."""
+        th, tw = tpl.shape
+        h, w = self.img.shape
+        if tpl.norm < np.finfo(float).eps:
+            return np.ones((h - th + 1, w - tw + 1), np.float32)
+        num = cv2.idft(cv2.mulSpectrums(self.spectrum, tpl.spectrum(self.size), 0, conjB=True),
+                       flags=cv2.DFT_REAL_OUTPUT)[:h - th + 1, :w - tw + 1]
+        # the inverse DFT's 1 / (rows x cols) folded into the template's norm
+        score = cv2.multiply(num, self._inv_spread(th, tw), scale=1.0 / (tpl.norm * self.size[0] * self.size[1]))
+        lo, hi, _, _ = cv2.minMaxLoc(score)
+        if hi >= 1.0 or lo <= -1.0:  # round-off beyond +-1 (OpenCV: +-1 up to 1.125, else 0)
+            a = np.abs(score)
+            score[a >= 1.0] = np.where(a[a >= 1.0] < 1.125, np.sign(score[a >= 1.0]), 0.0)
+        return score
+
+
+class _SpectralTemplate:
+    """A fixed template for :meth:`_Spectrum.match`: mean-free, its norm, and its spectrum per DFT
+    size, made on first use."""
+
+    def __init__(self, tpl: np.ndarray) -> None:
+        self.shape = tpl.shape
+        t = tpl.astype(np.float64)
+        t -= t.mean()
+        self.norm = float(math.sqrt(float(np.sum(t * t))))
+        self._tpl = t.astype(np.float32)
+        self._spectra: dict = {}
+
+    def spectrum(self, size: tuple[int, int]) -> np.ndarray:
+        out = self._spectra.get(size)
+        if out is None:
+            th, tw = self.shape
+            pad = cv2.copyMakeBorder(self._tpl, 0, size[0] - th, 0, size[1] - tw, cv2.BORDER_CONSTANT, value=0)
+            out = self._spectra[size] = cv2.dft(pad)
+        return out
+
+
 def _match_around(img: np.ndarray, tpl: np.ndarray, centre: np.ndarray, r: int) -> tuple[np.ndarray, float] | None:
     """Best place (px of ``img``, sub-pixel) of the square template ``tpl`` (odd side) within ``r`` px of
     ``centre`` (px of ``img``), and its normalised correlation; None when that neighbourhood leaves ``img``."""
@@ -503,7 +578,6 @@ class FeatureTracker(Tracker):
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                        patchSize=31, fastThreshold=10)
         self._clahe: dict = {}
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._ecc_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-4)
         k = 2 * s.highlight_margin_px + 1  # highlight mask grown by this margin
         self._dilate = np.ones((k, k), np.uint8)
@@ -525,6 +599,7 @@ class FeatureTracker(Tracker):
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
+        self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
@@ -547,14 +622,14 @@ class FeatureTracker(Tracker):
         so a bright frame never masks the target away.
         """
         s = self.settings
-        mean, std = cv2.meanStdDev(gray, mask=fov)
-        peak = min(245.0, max(200.0, float(mean[0, 0]) + 3.0 * float(std[0, 0])))
         _, cand = cv2.threshold(gray, s.saturation_level - 1, 255, cv2.THRESH_BINARY)
         cand = cv2.bitwise_and(cand, fov)
-        out = np.zeros(gray.shape, np.uint8)
+        out = np.zeros(gray.shape, bool)
         x, y, w, h = cv2.boundingRect(cand)
         if w == 0:
-            return out.view(bool)
+            return out
+        mean, std = cv2.meanStdDev(gray, mask=fov)
+        peak = min(245.0, max(200.0, float(mean[0, 0]) + 3.0 * float(std[0, 0])))
         box = (slice(y, y + h), slice(x, x + w))  # the rest only where there are candidates
         c, g = cand[box], gray[box]
         if bgr.ndim == 3:
@@ -574,14 +649,19 @@ class FeatureTracker(Tracker):
         if n > 1:
             sat |= glint[labels]
         n_sat = int(np.count_nonzero(sat))
-        n_fov = int(np.count_nonzero(fov))
-        if n_sat > s.highlight_max_share * n_fov:  # keep the brightest, up to the cap
-            k = int(s.highlight_max_share * n_fov)
+        if n_sat and n_sat > s.highlight_max_share * cv2.countNonZero(fov):  # keep the brightest, up to the cap
+            k = int(s.highlight_max_share * cv2.countNonZero(fov))
             vals = g[sat]
             q = np.partition(vals, len(vals) - k - 1)[len(vals) - k - 1] if k > 0 else 256
             sat &= g > q
-        out[box] = sat.view(np.uint8)
-        return cv2.dilate(out, self._dilate) > 0
+        # grown within the candidates' box and the margin only (nothing outside it to grow)
+        r = s.highlight_margin_px
+        gy0, gx0 = max(0, y - r), max(0, x - r)
+        gy1, gx1 = min(gray.shape[0], y + h + r), min(gray.shape[1], x + w + r)
+        grow = np.zeros((gy1 - gy0, gx1 - gx0), np.uint8)
+        grow[y - gy0:y - gy0 + h, x - gx0:x - gx0 + w] = sat.view(np.uint8)
+        out[gy0:gy1, gx0:gx1] = cv2.dilate(grow, self._dilate) > 0
+        return out
 
     def _normalise(self, raw: np.ndarray, fov: np.ndarray, sat: np.ndarray, to_frame: np.ndarray) -> _View:
         """Normalised gray (mean 128, fixed contrast, statistics over tissue only), neutral outside
@@ -1480,9 +1560,11 @@ class FeatureTracker(Tracker):
         owner = np.concatenate([np.full(len(k.orb_desc), i) for i, k in enumerate(kfs)])
         query = np.concatenate([k.orb_desc for k in kfs])
         qpts = np.concatenate([k.orb_pts for k in kfs])
-        matches = self._matcher.knnMatch(query, desc, k=2)
-        good = np.array([(m[0].queryIdx, m[0].trainIdx) for m in matches
-                         if len(m) == 2 and m[0].distance < s.reacquire_ratio * m[1].distance], int).reshape(-1, 2)
+        # The two nearest frame descriptors of each keyframe descriptor (what BFMatcher.knnMatch
+        # computes, by the same function), as arrays: no DMatch objects to build and unpack.
+        dist, nearest = cv2.batchDistance(query, desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+        ratio_ok = (nearest[:, 1] >= 0) & (dist[:, 0] < s.reacquire_ratio * dist[:, 1].astype(float))
+        good = np.column_stack([np.flatnonzero(ratio_ok), nearest[ratio_ok, 0]]).astype(int).reshape(-1, 2)
         best = None
         for i, kf in enumerate(kfs):
             g = good[owner[good[:, 0]] == i] if len(good) else good
@@ -1513,13 +1595,22 @@ class FeatureTracker(Tracker):
     # ------------------------------------------------------- dense re-acquisition
     _BAND_FULL = (1.0, 6.0)  # band-pass sigmas (px) at full resolution; at half resolution half of them
 
-    def _band_valid(self, fov: np.ndarray, sat: np.ndarray, scale: float) -> np.ndarray:
+    def _band_valid(self, fov: np.ndarray, sat: np.ndarray, scale: float,
+                    inner: np.ndarray | None = None) -> np.ndarray:
         """uint8 mask (255: usable) of a band-passed region at ``scale``: inside the field of view and
         clear of highlights by the band-pass's reach (a glint's filled blob still leaves a ring of
-        its halo there, which would match any bright blob, e.g. a glint that stays put)."""
+        its halo there, which would match any bright blob, e.g. a glint that stays put). ``inner``:
+        :meth:`_band_inner` of ``fov``, when already made."""
         k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
         near = cv2.dilate(sat.view(np.uint8), np.ones((k, k), np.uint8))
-        return cv2.bitwise_and(cv2.erode(fov, np.ones((k, k), np.uint8)), cv2.bitwise_not(near * 255))
+        if inner is None:
+            inner = self._band_inner(fov, scale)
+        return cv2.bitwise_and(inner, cv2.bitwise_not(near * 255))
+
+    def _band_inner(self, fov: np.ndarray, scale: float) -> np.ndarray:
+        """The part of ``fov`` (uint8 mask) beyond the band-pass's reach (at ``scale``) from its edge."""
+        k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
+        return cv2.erode(fov, np.ones((k, k), np.uint8))
 
     def _kf_band(self, kf: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
         """Band-passed gray of keyframe ``kf``'s region and its usable mask (:meth:`_band_valid`)."""
@@ -1570,12 +1661,13 @@ class FeatureTracker(Tracker):
         w, h = x1 - x0, y1 - y0
         if self._fov_half is None:
             self._fov_half = cv2.resize(self._fov[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+            self._fov_half_inner = self._band_inner(self._fov_half, 0.5)  # the same on every frame
         small_bgr = cv2.resize(frame[y0:y1, x0:x1], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
         gray = cv2.cvtColor(small_bgr, cv2.COLOR_BGR2GRAY) if small_bgr.ndim == 3 else small_bgr
         fov = self._fov_half
         view = self._normalise(gray, fov, self._highlights(small_bgr, gray, fov), np.eye(3))
         img = _band(view.gray, 0.5 * self._BAND_FULL[0], 0.5 * self._BAND_FULL[1])
-        img[self._band_valid(fov, view.sat, 0.5) == 0] = 0.0
+        img[self._band_valid(fov, view.sat, 0.5, self._fov_half_inner) == 0] = 0.0
         return img, fov, np.array([x0, y0], float)
 
     def _self_similarity(self, kf: _Keyframe) -> float:
@@ -1637,7 +1729,8 @@ class FeatureTracker(Tracker):
                     if kf is not self._anchor and anchor is not None and full[1] > s.dense_energy_ratio * anchor[1] \
                             and _masked_ncc(anchor[0], full[0]) < s.dense_agree_ncc:
                         continue
-                    self._dense_tpl.append((kf, small[0], full[0], _halved(small[0]), view_sim))
+                    self._dense_tpl.append((kf, _SpectralTemplate(small[0]), full[0],
+                                            _SpectralTemplate(_halved(small[0])), view_sim))
         if not self._dense_tpl:
             return None
         img, fov, origin = self._dense_image(frame)
@@ -1655,9 +1748,10 @@ class FeatureTracker(Tracker):
             if self._fov_quarter is None:
                 self._fov_quarter = cv2.resize(fov, img_q.shape[::-1], interpolation=cv2.INTER_NEAREST)
             keep = []
+            spec_q = _Spectrum(img_q)
             for t in tpls:
                 hq = t[3].shape[0] // 2
-                score_q = cv2.matchTemplate(img_q, t[3], cv2.TM_CCOEFF_NORMED)
+                score_q = spec_q.match(t[3])
                 score_q[self._fov_quarter[hq:hq + score_q.shape[0], hq:hq + score_q.shape[1]] == 0] = -1.0
                 _, top_q, second_q = _peaks(score_q, max(2, hq // 2))
                 if top_q >= s.dense_presearch_ncc and top_q >= s.dense_presearch_lead * second_q:
@@ -1666,9 +1760,10 @@ class FeatureTracker(Tracker):
                     self.stats["dense_presearch_skips"] += 1
             tpls = keep
         peaks = []
+        spec = _Spectrum(img) if tpls else None
         for kf, small, full, _, view_sim in tpls:
             half = small.shape[0] // 2
-            score = cv2.matchTemplate(img, small, cv2.TM_CCOEFF_NORMED)
+            score = spec.match(small)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
             loc, top, second = _peaks(score, max(3, half // 2))
             peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full,
