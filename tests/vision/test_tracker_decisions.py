@@ -45,3 +45,19 @@ def test_a_decorrelated_patch_with_its_surroundings_tracked_is_not_taken_for_cov
     # rejected as covered before
     old, _ = _run(FeatureTracker(TrackerSettings(patch_override_px=0.0)), retina_lighting)
     assert not np.any(np.isfinite(old[32:35])), old[30:38].round(2)
+
+
+def test_a_strong_keyframe_match_corrects_the_error_the_chain_inherited():
+    """`vision-eval`'s `leave` sequence on the fundus photograph, seed 0: after the target came back
+    into view and was re-acquired, the chain (which starts from the last accepted position, 3-5 px
+    off) disagreed by 3-7 px with a later keyframe matched on 16-24 features around the target,
+    0.4-1 px from it; only the selection keyframe could overrule the chain, so frames 55-60 were
+    rejected. A strong, surrounding match of any keyframe now corrects the chain (within
+    keyframe_correction_px)."""
+    target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
+    frames = render_sequence("leave", EvalSettings(photos=()), seed=0, target=target)
+    errs, _ = _run(FeatureTracker(), frames)
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)     # never a wrong position
+    assert np.all(errs[54:60] < 2.0), errs[50:62].round(2)            # frames 55-60
+    old, _ = _run(FeatureTracker(TrackerSettings(keyframe_correction_px=0.0)), frames)
+    assert np.sum(np.isfinite(old[54:60])) <= 2, old[50:62].round(2)
