@@ -349,7 +349,7 @@ class TrackerSettings:
                                     doc="a frame whose target patch correlates less with the keyframe's is rejected (covered)")
     patch_keyframe_ncc: float = param(0.75, lo=-1.0, hi=1.0,
                                       doc="least target-patch correlation for full confidence and for making a keyframe")
-    patch_override_px: float = param(1.5, unit="px", lo=0.0, hi=100.0,
+    patch_override_px: float = param(3.0, unit="px", lo=0.0, hi=100.0,
                                      doc="a target patch that decorrelated (below patch_reject_ncc) does not reject the "
                                          "frame when the chain and the keyframe's features agree within this distance "
                                          "and at least 2 of those features lie within 0.3 window of the target "
@@ -1371,7 +1371,8 @@ class FeatureTracker(Tracker):
         if ncc < s.patch_reject_ncc:
             # The patch decorrelated: something may cover the target. Not when the keyframe's own
             # features right around the target (within 0.3 window) still follow it and the chain
-            # agrees closely: a covered target's surroundings are covered too, or they disagree.
+            # agrees (patch_override_px): a covered target's surroundings are covered too, or they
+            # disagree.
             # On the photographs (seeds 0 and 1) 36 of 37 frames rejected as covered were visible
             # and tracked within 2 px (an exposure change, motion blur, noise or sliding glare
             # decorrelated the band-passed patch; the 37th was a covered target, within 1.6 px).
