@@ -61,6 +61,21 @@ def test_a_target_under_strong_noise_is_not_taken_for_covered():
     assert res_old[24].lost and not np.any(np.isfinite(old[24:])), old[18:].round(2)
 
 
+def test_a_dense_match_with_its_surroundings_tracked_is_not_taken_for_covered():
+    """`vision-eval`'s `tip` sequence on the fundus photograph, seed 1, first 50 frames: on frame 41 too
+    few keyframe corners follow (motion blur), the keyframe's window matches densely where the chain
+    puts the target and the chain's features around it follow it, but the band-passed patch
+    decorrelated: rejected as covered, and the target was lost by frame 50. A dense match counts
+    like the keyframe's features (the chain's features right around the target must follow it)."""
+    target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
+    frames = render_sequence("tip", EvalSettings(photos=()), seed=1, target=target)[:52]
+    errs, res = _run(FeatureTracker(), frames)
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)     # never a wrong position
+    assert errs[40] < 3.0 and np.all(np.isfinite(errs[40:])), errs[38:].round(2)   # frames 41-51
+    old, res_old = _run(FeatureTracker(TrackerSettings(patch_override_px=0.0)), frames)
+    assert not np.isfinite(old[40]) and res_old[49].lost, old[38:].round(2)
+
+
 def test_a_strong_keyframe_match_corrects_the_error_the_chain_inherited():
     """`vision-eval`'s `leave` sequence on the fundus photograph, seed 0: after the target came back
     into view and was re-acquired, the chain (which starts from the last accepted position, 3-5 px

@@ -353,8 +353,9 @@ class TrackerSettings:
     patch_override_px: float = param(3.0, unit="px", lo=0.0, hi=100.0,
                                      doc="a target patch that decorrelated (below patch_reject_ncc) does not reject the "
                                          "frame when the chain and the keyframe's features agree within this distance "
-                                         "and at least 2 of those features lie within 0.3 window of the target "
-                                         "(accepted with low confidence, no keyframe); 0: always reject")
+                                         "and at least 2 of those features lie within 0.3 window of the target (or a "
+                                         "dense match agrees with the chain and 2 of the chain's features lie there; "
+                                         "accepted with low confidence, no keyframe); 0: always reject")
     patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
                                       doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
                                           "patch counts as covered")
@@ -1375,14 +1376,16 @@ class FeatureTracker(Tracker):
         if ncc < s.patch_reject_ncc:
             # The patch decorrelated: something may cover the target. Not when the keyframe's own
             # features right around the target (within 0.3 window) still follow it and the chain
-            # agrees (patch_override_px): a covered target's surroundings are covered too, or they
-            # disagree.
+            # agrees (patch_override_px), or a dense match of the keyframe's window agrees with the
+            # chain and the chain's features right around the target follow it: a covered
+            # target's surroundings are covered too, or they disagree.
             # On the photographs (seeds 0 and 1) 36 of 37 frames rejected as covered were visible
             # and tracked within 2 px (an exposure change, motion blur, noise or sliding glare
             # decorrelated the band-passed patch; the 37th was a covered target, within 1.6 px).
             # Such a frame is accepted with a low confidence and makes no keyframe.
             near = 0
-            if key is not None and not suspect and agree <= s.patch_override_px:
+            if not suspect and ((key is not None and agree <= s.patch_override_px) or
+                                (key is None and dense is not None and s.patch_override_px > 0.0)):
                 d = np.abs(next_pts - est)
                 near = int(np.count_nonzero(np.max(d, axis=1) <= 0.3 * self._window))
             if near < 2:
