@@ -163,3 +163,26 @@ def test_to_observation_offsets_from_the_centre(cam):
     assert obs.valid and obs.capture_time == 1.25 and obs.frame_index == 7 and obs.confidence == 0.9
     lost = to_observation(TrackResult(np.full(2, np.nan), 0.0, False, True), 2.0, cam.cx, cam.cy)
     assert not lost.valid and np.isnan(lost.offset).all() and lost.confidence == 0.0
+
+
+
+@pytest.mark.parametrize("every", [4, 8])
+def test_orb_alone_reacquires_within_its_period_of_the_return(renderer, sel_pose, every):
+    """Without the dense search, a target that reappears ~110 px away (beyond the local re-lock's
+    reach) is found by the ORB search, which runs on every ``reacquire_every``-th lost frame:
+    within that many frames of its return, never at a wrong place."""
+    renderer.reseed(2)
+    frames = []
+    for i in range(32):
+        x = -0.004 if i < 16 else 0.014
+        frames.append(renderer.render(np.eye(4), sel_pose((x, 0.0, 0.05), P_SEL, (0.0, 0.0, 0.3)), point_m=P_SEL,
+                                      occluders=FULL_COVER if 6 <= i < 16 else ()))
+    tr = FeatureTracker(TrackerSettings(dense_reacquire=False, reacquire_every=every))
+    res = _run(tr, frames)
+    assert not any(r.valid for r in res[5:15])
+    back = next((i for i in range(15, len(res)) if res[i].valid), None)
+    assert back is not None and back + 1 - 16 < every, f"re-acquired at frame {back and back + 1}, returned at 16"
+    assert np.hypot(*(res[back].position_px - frames[15].truth_px)) > 60.0  # not where it was lost
+    assert all(r.valid and _err(r, f) < 2.0 for r, f in zip(res[back:], frames[back + 1:]))
+    assert not _false_locks(res, frames[1:])
+    assert tr.stats["orb_searches"] >= 1
