@@ -437,10 +437,6 @@ class TrackerSettings:
                                      doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
-    orb_levels: int = param(5, lo=1, hi=12,
-                            doc="pyramid levels (scale step 1.2) of the frame's ORB search: finds a target up to "
-                                "1.2^(n-1) times larger than in its keyframe (keyframes have 6 levels: smaller ones "
-                                "down to 1/2.5); each level costs search time on every re-acquisition attempt")
     reacquire_every: int = param(8, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th "
                                                           "frame (the n-th, 2n-th, ... lost frame)")
     reacquire_min_inliers: int = param(12, lo=4, hi=1000, doc="fewest ORB RANSAC inliers to accept a re-acquisition")
@@ -578,7 +574,7 @@ class FeatureTracker(Tracker):
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
-        self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=s.orb_levels, edgeThreshold=31,
+        self._orb = cv2.ORB_create(nfeatures=s.orb_features, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                    patchSize=31, fastThreshold=10)
         self._orb_tpl = cv2.ORB_create(nfeatures=400, scaleFactor=1.2, nlevels=6, edgeThreshold=31,
                                        patchSize=31, fastThreshold=10)
