@@ -30,6 +30,15 @@ def _translation(renderer, sel_pose, n=30, step_m=0.0006, start=(-0.006, -0.002)
                                                 (0.12, -0.08, 0.4)), point_m=P_SEL, **kw) for i in range(n)]
 
 
+def _blanked_then_moved(renderer, sel_pose, n, blank, back, x_back):
+    """``n`` frames of the target at x = -4 mm, the view blanked on frames ``blank`` to ``back`` - 1,
+    the target at ``x_back`` (m) from frame ``back`` on. The sensor noise is reseeded (the result must
+    not depend on which tests ran before on the shared renderer)."""
+    renderer.reseed(2)
+    return [renderer.render(np.eye(4), sel_pose((-0.004 if i < back else x_back, 0.0, 0.05), P_SEL, (0.0, 0.0, 0.3)),
+                            point_m=P_SEL, occluders=FULL_COVER if blank <= i < back else ()) for i in range(n)]
+
+
 def test_feature_tracker_follows_a_translation(renderer, sel_pose):
     frames = _translation(renderer, sel_pose)              # ~3.6 px/frame
     res = _run(FeatureTracker(), frames)
@@ -61,12 +70,7 @@ def test_reacquisition_elsewhere_in_the_frame(renderer, sel_pose):
     """The view is blanked, then the target reappears ~150 px away: found by the whole-frame search.
     The sensor noise is reseeded (the result must not depend on which tests ran before on the
     shared renderer); over noise seeds 0-5 it is found 1-3 frames after it reappears."""
-    renderer.reseed(2)
-    frames = []
-    for i in range(30):
-        x = -0.004 if i < 14 else 0.021
-        frames.append(renderer.render(np.eye(4), sel_pose((x, 0.0, 0.05), P_SEL, (0.0, 0.0, 0.3)), point_m=P_SEL,
-                                      occluders=FULL_COVER if 8 <= i < 14 else ()))
+    frames = _blanked_then_moved(renderer, sel_pose, 30, 8, 14, 0.021)
     res = _run(FeatureTracker(), frames)
     back = next(i for i in range(13, len(res)) if res[i].valid)
     assert back <= 17, f"re-acquired only at frame {back + 1}"   # within 4 frames of its return
@@ -163,3 +167,21 @@ def test_to_observation_offsets_from_the_centre(cam):
     assert obs.valid and obs.capture_time == 1.25 and obs.frame_index == 7 and obs.confidence == 0.9
     lost = to_observation(TrackResult(np.full(2, np.nan), 0.0, False, True), 2.0, cam.cx, cam.cy)
     assert not lost.valid and np.isnan(lost.offset).all() and lost.confidence == 0.0
+
+
+
+@pytest.mark.parametrize("every", [4, 8])
+def test_orb_alone_reacquires_within_its_period_of_the_return(renderer, sel_pose, every):
+    """Without the dense search, a target that reappears ~110 px away (beyond the local re-lock's
+    reach) is found by the ORB search, which runs on every ``reacquire_every``-th lost frame:
+    within that many frames of its return, never at a wrong place."""
+    frames = _blanked_then_moved(renderer, sel_pose, 32, 6, 16, 0.014)
+    tr = FeatureTracker(TrackerSettings(dense_reacquire=False, reacquire_every=every))
+    res = _run(tr, frames)
+    assert not any(r.valid for r in res[5:15])
+    back = next((i for i in range(15, len(res)) if res[i].valid), None)
+    assert back is not None and back + 1 - 16 < every, f"re-acquired at frame {back and back + 1}, returned at 16"
+    assert np.hypot(*(res[back].position_px - frames[15].truth_px)) > 60.0  # not where it was lost
+    assert all(r.valid and _err(r, f) < 2.0 for r, f in zip(res[back:], frames[back + 1:]))
+    assert not _false_locks(res, frames[1:])
+    assert tr.stats["orb_searches"] >= 1

@@ -12,7 +12,7 @@ from targetlock.vision.texture import photo_texture
 from targetlock.vision.tracker import TrackerSettings
 
 P_SEL = (0.01, -0.02)
-NO_ORB = TrackerSettings(reacquire_every=1000)  # ORB only on the first lost frame: the dense search alone
+NO_ORB = TrackerSettings(reacquire_every=1000)  # no ORB search within a test: the dense search alone
 
 
 @pytest.fixture(scope="module")
