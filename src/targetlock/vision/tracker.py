@@ -1532,8 +1532,16 @@ class FeatureTracker(Tracker):
         supported = (surrounded and self._in_view(est, inner=True)
                      and ncc >= s.patch_keyframe_ncc and (not weak or self._weak_keys < s.weak_keyframes)
                      and (seen or ref.unseen < 2))
-        # Renew only when chain and keyframe both support this frame (or the chain strongly).
-        strong = (key is not None and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
+        # Renew only when chain and keyframe both support this frame (or the chain strongly). Under
+        # strong sensor noise (denoised regions) a dense match of the keyframe's window that agrees
+        # with a plausible chain is the keyframe's support too: the keyframe's corners stop matching
+        # as the view moves on (seed 2's retina `noise`: 1-9 of 40 on frames 16-28), only dense
+        # matches carry the frames, and without a renewal the stale keyframe failed for good on
+        # frame 24 (lost for 30 frames with the target in view, 0.9-1.7 px before). Not on a quiet
+        # sensor: there such keyframes cost more than they kept (seed 0's coffee `lighting` 0.69 ->
+        # 0.37, one frame > 8 px off on seed 2's retina `leave`).
+        by_key = key is not None or (dense is not None and self._smooth > 0.0)
+        strong = (by_key and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
         if renew and not relock and supported and strong:
             kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
