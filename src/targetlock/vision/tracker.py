@@ -608,6 +608,7 @@ class FeatureTracker(Tracker):
         self._vel_known = False
         self._clock = FrameClock()
         self._retry = False  # the optical flow runs on local-mean-free images (exposure retry)
+        self._coasted: TrackResult | None = None  # a rejected frame's chain-only report (see _track)
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
         self._fov_half: np.ndarray | None = None
@@ -1310,6 +1311,7 @@ class FeatureTracker(Tracker):
                 self.stats["retried"] += 1
         if res is not None:
             return res
+        coasted, self._coasted = self._coasted, None
         self._misses += 1
         self.stats["misses"] += 1
         # The target keeps moving while frames are rejected (blur, a glint, a covered moment): the
@@ -1323,7 +1325,7 @@ class FeatureTracker(Tracker):
             self._lost_frames = 0
             self._dense_tpl = self._cand = None
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
-        return TrackResult(self._pos.copy(), 0.0, False, False)
+        return coasted or TrackResult(self._pos.copy(), 0.0, False, False)
 
     def _track(self, frame: np.ndarray, relock: bool) -> TrackResult | None:
         """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
@@ -1372,6 +1374,7 @@ class FeatureTracker(Tracker):
         if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
+        disputed = False  # a dense match disagreed with the chain (on the retry)
         if key is None and current is not None and chain is not None and not relock and not suspect:
             # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
             # halo out, which on weak texture can outweigh the tissue). An ECC match that
@@ -1379,6 +1382,17 @@ class FeatureTracker(Tracker):
             dense = self._match_ecc(self._key, *current)
             if dense is None:
                 dense = self._match_dense(self._key, *current)
+            if self._retry and self._smooth == 0.0 and dense is not None and \
+                    np.hypot(*(_apply(dense[0], self._key.target) - est_chain)) > s.consistency_px:
+                # ECC starts from the warp the view's similarity predicts, and weak keyframe matches
+                # (few corners, all near the target) can leave that similarity off: on seed 0's coffee
+                # `tip` 15 % in scale, and ECC converged 17-30 px off on frames where the chain (20+
+                # inliers) was within 2 px. Such a frame is still rejected (the tracker's state stays
+                # at the last accepted frame), but a strong chain whose target patch matches the
+                # keyframe's may report it. Not under strong sensor noise (denoised regions), where
+                # the chain drifts.
+                self.stats["inconsistent"] += 1
+                dense, disputed = None, True
         if key is not None:
             kf, (aff, sim, inl, n_in), kdst = key
             est = _apply(aff, kf.target)
@@ -1433,7 +1447,7 @@ class FeatureTracker(Tracker):
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]]
-        elif (chain is not None and not suspect and not relock and self._misses == 0 and self._chain_only < 3
+        elif (chain is not None and not suspect and not relock and (self._misses == 0 or disputed) and self._chain_only < 3
               and chain[3] >= 2 * s.min_inliers):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
@@ -1457,6 +1471,10 @@ class FeatureTracker(Tracker):
             ref_to_frame = new_from_anchor @ _inv(ref.from_anchor)
         ref_to_frame[:2, 2] += est - _apply(ref_to_frame, ref.target)
         ncc, blurred, seen = self._patch_similarity(view, ref, ref_to_frame, (est - self._pos) / steps)
+        if disputed:  # reported (if its patch confirms it), but not taken as the next frames' base
+            if seen and ncc >= s.patch_keyframe_ncc:
+                self._coasted = TrackResult(est.copy(), float(conf * self._view_share(est)), True, False)
+            return None
         if ncc < s.patch_reject_ncc:
             # The patch decorrelated: something may cover the target. Not when the keyframe's own
             # features right around the target (within 0.3 window) still follow it and the chain
