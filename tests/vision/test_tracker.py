@@ -169,7 +169,6 @@ def test_to_observation_offsets_from_the_centre(cam):
     assert not lost.valid and np.isnan(lost.offset).all() and lost.confidence == 0.0
 
 
-
 @pytest.mark.parametrize("every", [4, 8])
 def test_orb_alone_reacquires_within_its_period_of_the_return(renderer, sel_pose, every):
     """Without the dense search, a target that reappears ~110 px away (beyond the local re-lock's

@@ -130,9 +130,11 @@ class ControlLoop:
         try:
             k = self._k + 1
             tick.skipped = 0
-            if self.clock.realtime and self.clock.now() - k * self.period > MAX_BEHIND:
-                tick.skipped = int(self.clock.now() / self.period) - k
-                k += tick.skipped
+            if self.clock.realtime:
+                now = self.clock.now()
+                if now - k * self.period > MAX_BEHIND:
+                    tick.skipped = int(now / self.period) - k
+                    k += tick.skipped
             deadline = k * self.period
             if self._early:
                 t, tick.lateness, tick.early = self._wait(deadline)

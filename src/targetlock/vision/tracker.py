@@ -303,8 +303,9 @@ class _Spectrum:
         score = cv2.multiply(num, self._inv_spread(th, tw), scale=1.0 / (tpl.norm * self.size[0] * self.size[1]))
         lo, hi, _, _ = cv2.minMaxLoc(score)
         if hi >= 1.0 or lo <= -1.0:  # round-off beyond +-1 (OpenCV: +-1 up to 1.125, else 0)
-            a = np.abs(score)
-            score[a >= 1.0] = np.where(a[a >= 1.0] < 1.125, np.sign(score[a >= 1.0]), 0.0)
+            over = np.abs(score) >= 1.0
+            v = score[over]
+            score[over] = np.where(np.abs(v) < 1.125, np.sign(v), 0.0)
         return score
 
 
@@ -662,8 +663,9 @@ class FeatureTracker(Tracker):
         if n > 1:
             sat |= glint[labels]
         n_sat = int(np.count_nonzero(sat))
-        if n_sat and n_sat > s.highlight_max_share * cv2.countNonZero(fov):  # keep the brightest, up to the cap
-            k = int(s.highlight_max_share * cv2.countNonZero(fov))
+        cap = int(s.highlight_max_share * cv2.countNonZero(fov)) if n_sat else 0
+        if n_sat > cap:  # keep the brightest, up to the cap
+            k = cap
             vals = g[sat]
             q = np.partition(vals, len(vals) - k - 1)[len(vals) - k - 1] if k > 0 else 256
             sat &= g > q
@@ -1259,6 +1261,7 @@ class FeatureTracker(Tracker):
         # phase correlation's region), and the retry repeats the phase correlation: made once per
         # frame (the frame may be a reused buffer, so never across frames).
         self._per_frame = {}
+        self._coasted = None
         try:
             return self._update(frame_bgr, capture_time)
         finally:
@@ -1670,7 +1673,7 @@ class FeatureTracker(Tracker):
         clear of highlights by the band-pass's reach (a glint's filled blob still leaves a ring of
         its halo there, which would match any bright blob, e.g. a glint that stays put). ``inner``:
         :meth:`_band_inner` of ``fov``, when already made."""
-        k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
+        k = self._band_reach(scale)
         near = cv2.dilate(sat.view(np.uint8), np.ones((k, k), np.uint8))
         if inner is None:
             inner = self._band_inner(fov, scale)
@@ -1678,8 +1681,12 @@ class FeatureTracker(Tracker):
 
     def _band_inner(self, fov: np.ndarray, scale: float) -> np.ndarray:
         """The part of ``fov`` (uint8 mask) beyond the band-pass's reach (at ``scale``) from its edge."""
-        k = 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
+        k = self._band_reach(scale)
         return cv2.erode(fov, np.ones((k, k), np.uint8))
+
+    def _band_reach(self, scale: float) -> int:
+        """Side (px, odd) of the square the band-pass at ``scale`` reaches across (1.5 of its wide sigma)."""
+        return 2 * int(math.ceil(1.5 * self._BAND_FULL[1] * scale)) + 1
 
     def _kf_band(self, kf: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
         """Band-passed gray of keyframe ``kf``'s region and its usable mask (:meth:`_band_valid`)."""
