@@ -15,7 +15,9 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     stored keyframe -> X_{n-1} must equal keyframe -> X_n: the report's consistency check) and
     the target has not jumped away from its constant-velocity prediction (a false jump).
     Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
-    well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
+    well-supported frames, and not from an edge-like target window (a rim, a fold: it locates the
+    target across the edge only, and along it the chain and the keyframe slide together) that lost
+    the 2-D texture of its sharpest keyframe (motion blur along the edge); the selection keyframe (the anchor) is tried again whenever the view
     returns close to it and overrules a drifted chain. When too few corners follow the keyframe
     (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
     window stands in for them, accepted only when it agrees with the chain. The view's scale and
@@ -584,6 +586,8 @@ class _Keyframe:
     # energy), made on first use
     patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
+    texture: float = 1.0     # share of the 2-D texture of its lineage's sharpest keyframe its edge-like target
+    # window still shows (1 when the window is not edge-like; see FeatureTracker._edge_smeared)
     self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
     # the target (an edge or a repeated texture matches elsewhere too), made on first use
 
@@ -1579,12 +1583,16 @@ class FeatureTracker(Tracker):
         # blur along the edge), a keyframe made there hands the slide on: on seed 3's coffee `blur`
         # keyframes made in the smear were 2.4 and 10.1 px off and 31 % of the frames were reported
         # 9-17 px off; on seed 4's coffee `rotation` 5-6.5 px off ones drifted to a false lock.
-        if renew and not relock and supported and strong and self._edge_smeared(view, est, ref, ref_to_frame):
-            self.stats["edge_smeared"] += 1
-            renew = False
+        texture = None
+        if renew and not relock and supported and strong:
+            texture = self._edge_smeared(view, est, ref, ref_to_frame)
+            if texture is not None and texture < s.edge_texture_loss:
+                self.stats["edge_smeared"] += 1
+                renew = False
         if renew and not relock and supported and strong:
             kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
+                kf_new.texture = 1.0 if texture is None else texture
                 kf_new.unseen = 0 if seen else ref.unseen + 1
                 self._recent.append(kf_new)
                 self._key = kf_new
@@ -1649,16 +1657,20 @@ class FeatureTracker(Tracker):
             parts.append(max(lo, 0.0) / hi if hi > 1e-6 else 0.0)
         return parts[0], parts[1]
 
-    def _edge_smeared(self, view: _View, est: np.ndarray, ref: _Keyframe, ref_to_frame: np.ndarray) -> bool:
-        """The target window (at ``est`` px in ``view``) is edge-like (isotropy below ``edge_isotropy``)
-        and has lost the 2-D texture keyframe ``ref`` showed (its isotropy below
-        ``edge_texture_loss`` of the keyframe's, :meth:`_isotropies`): no keyframe from it. Not under
-        strong sensor noise (denoised regions), where the fine texture cannot be measured."""
+    def _edge_smeared(self, view: _View, est: np.ndarray, ref: _Keyframe, ref_to_frame: np.ndarray) -> float | None:
+        """For a keyframe from this frame: None when the target window (at ``est`` px in ``view``) is not
+        edge-like (isotropy at least ``edge_isotropy``), else the share of 2-D texture it keeps of the
+        sharpest keyframe it descends from (its isotropy over keyframe ``ref``'s, :meth:`_isotropies`,
+        times ``ref.texture``); below ``edge_texture_loss`` it is smeared (no keyframe). Compared along
+        the lineage, so a slow smear over several keyframes adds up. None under strong sensor noise
+        (denoised regions), where the fine texture cannot be measured."""
         s = self.settings
         if self._smooth > 0.0 or s.edge_isotropy <= 0.0:
-            return False
+            return None
         cur, key = self._isotropies(view, est, ref, ref_to_frame)
-        return cur < s.edge_isotropy and cur < s.edge_texture_loss * key
+        if cur >= s.edge_isotropy:
+            return None
+        return min(1.0, (cur / key if key > 0.0 else 1.0) * ref.texture)
 
     def _steady(self, chain: tuple, steps: float) -> tuple[tuple, bool]:
         """The frame-to-frame motion ``chain`` with its scale and rotation kept only when they are
