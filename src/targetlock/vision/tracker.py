@@ -455,10 +455,11 @@ class TrackerSettings:
                                      "structure tensor, sensor noise removed) is below this is edge-like: it locates "
                                      "the target across the edge only; 0: no edge rule")
     edge_texture_loss: float = param(0.75, lo=0.0, hi=1.0,
-                                     doc="an edge-like target window whose isotropy fell below this fraction of the "
-                                         "keyframe's it was matched against (same tissue area and scale, pixels clear "
-                                         "of highlights in both) lost the texture that held the target along the edge "
-                                         "(motion blur): no keyframe is made from it")
+                                     doc="an edge-like target window that keeps less than this share of the 2-D "
+                                         "texture (isotropy) of the sharpest keyframe it descends from (compared keyframe "
+                                         "to keyframe at the same tissue area and scale, over pixels clear of highlights "
+                                         "in both) lost the texture that held the target along the edge (motion blur): "
+                                         "no keyframe is made from it")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(8, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th "
