@@ -15,7 +15,9 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     stored keyframe -> X_{n-1} must equal keyframe -> X_n: the report's consistency check) and
     the target has not jumped away from its constant-velocity prediction (a false jump).
     Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
-    well-supported frames; the selection keyframe (the anchor) is tried again whenever the view
+    well-supported frames, and not from an edge-like target window (a rim, a fold: it locates the
+    target across the edge only, and along it the chain and the keyframe slide together) that lost
+    the 2-D texture of its sharpest keyframe (motion blur along the edge); the selection keyframe (the anchor) is tried again whenever the view
     returns close to it and overrules a drifted chain. When too few corners follow the keyframe
     (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
     window stands in for them, accepted only when it agrees with the chain. The view's scale and
@@ -52,6 +54,7 @@ Units: pixels (x right, y down, origin top-left, pixel centres at integers), fra
 from __future__ import annotations
 
 import abc
+import functools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -447,6 +450,16 @@ class TrackerSettings:
                                       "this much is the same tissue blurred (weak texture under motion blur), not covered")
     patch_blur_energy: float = param(0.2, lo=0.0, hi=1.0,
                                      doc="least texture-energy ratio (current / keyframe) of such a blurred target patch")
+    edge_isotropy: float = param(0.05, lo=0.0, hi=1.0,
+                                 doc="a target window whose texture isotropy (smaller / larger eigenvalue of its "
+                                     "structure tensor, sensor noise removed) is below this is edge-like: it locates "
+                                     "the target across the edge only; 0: no edge rule")
+    edge_texture_loss: float = param(0.75, lo=0.0, hi=1.0,
+                                     doc="an edge-like target window that keeps less than this share of the 2-D "
+                                         "texture (isotropy) of the sharpest keyframe it descends from (compared keyframe "
+                                         "to keyframe at the same tissue area and scale, over pixels clear of highlights "
+                                         "in both) lost the texture that held the target along the edge (motion blur): "
+                                         "no keyframe is made from it")
     reacquire: bool = param(True, doc="search the whole frame for the target once it is lost")
     orb_features: int = param(1000, lo=50, hi=50000, doc="ORB features detected over the frame when re-acquiring")
     reacquire_every: int = param(8, lo=1, hi=1000, doc="while lost, search the whole frame with ORB on every n-th "
@@ -574,6 +587,8 @@ class _Keyframe:
     # energy), made on first use
     patch_wide: tuple | None = None  # the same of the whole target window (a patch under glare), on first use
     band: tuple | None = None  # band-passed gray and its valid mask (dense re-acquisition), made on first use
+    texture: float = 1.0     # share of the 2-D texture of its lineage's sharpest keyframe its edge-like target
+    # window still shows (1 when the window is not edge-like; see FeatureTracker._edge_smeared)
     self_ncc: float | None = None  # best match of its band-passed target window in its own region away from
     # the target (an edge or a repeated texture matches elsewhere too), made on first use
 
@@ -603,7 +618,7 @@ class FeatureTracker(Tracker):
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
                       "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
-                      "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0}
+                      "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0}
         self._chain_only = 0
         self._lost_frames = 0
         self._vel_known = False
@@ -1563,9 +1578,22 @@ class FeatureTracker(Tracker):
         # 0.37, one frame > 8 px off on seed 2's retina `leave`).
         by_key = key is not None or (dense is not None and self._smooth > 0.0)
         strong = (by_key and chain is not None) or (key is None and n_in >= 3 * s.min_inliers)
+        # A target window whose texture is an edge (a rim, a fold) locates the target only across it:
+        # along it the chain and the keyframe's features slide together (the consistency check
+        # cannot see it) and only faint texture holds them. When that texture is smeared away (motion
+        # blur along the edge), a keyframe made there hands the slide on: on seed 3's coffee `blur`
+        # keyframes made in the smear were 2.4 and 10.1 px off and 31 % of the frames were reported
+        # 9-17 px off; on seed 4's coffee `rotation` 5-6.5 px off ones drifted to a false lock.
+        texture = None
+        if renew and not relock and supported and strong:
+            texture = self._edge_smeared(view, est, ref, ref_to_frame)
+            if texture is not None and texture < s.edge_texture_loss:
+                self.stats["edge_smeared"] += 1
+                renew = False
         if renew and not relock and supported and strong:
             kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
+                kf_new.texture = 1.0 if texture is None else texture
                 kf_new.unseen = 0 if seen else ref.unseen + 1
                 self._recent.append(kf_new)
                 self._key = kf_new
@@ -1573,6 +1601,77 @@ class FeatureTracker(Tracker):
         if relock:
             self.stats["reacquisitions"] += 1
         return TrackResult(est.copy(), float(conf), True, False)
+
+    @staticmethod
+    @functools.lru_cache(maxsize=64)
+    def _grad_noise(sigma: float) -> float:
+        """What white noise of std 1 adds to each diagonal term of the structure tensor of
+        :meth:`_isotropies` (gray smoothed with ``sigma`` px, then Sobel / 8)."""
+        r = int(math.ceil(4 * sigma)) + 2
+        delta = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+        delta[r, r] = 1.0
+        gx = cv2.Sobel(cv2.GaussianBlur(delta, (0, 0), sigma), cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        return float(np.sum(gx.astype(np.float64) ** 2))
+
+    def _isotropies(self, view: _View, est: np.ndarray, ref: _Keyframe, ref_to_frame: np.ndarray) -> tuple[float, float]:
+        """How two-dimensional the texture of the target window is in ``view`` (target at ``est`` px)
+        and in keyframe ``ref`` (mapped into this frame by ``ref_to_frame``, 3x3): the smaller over the
+        larger eigenvalue of each window's structure tensor (Gaussian-weighted towards the target,
+        sigma a quarter window), the sensor noise's share taken out of both (0: an edge or nothing,
+        1: isotropic texture). Each is measured on its own pixel grid (resampling would blur the fine
+        texture this measures), at the same scale on the tissue (the finer view smoothed more: a view
+        that zoomed out shows less fine texture, which is no blur) and only where both frames are
+        inside the field of view and clear of highlights (a clipped area has no texture in either:
+        an exposure step that clips part of the window changes neither)."""
+        sc = _scale_angle(ref_to_frame)[0]  # this frame's px per keyframe px
+        near = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+        parts = []
+        for v, centre, other, to_other, k in ((view, est, ref.view, _inv(ref_to_frame), max(1.0, sc)),
+                                              (ref.view, ref.target, view, ref_to_frame, max(1.0, 1.0 / sc))):
+            # the same area of tissue in both (the keyframe's px are 1 / sc of this frame's), smoothed to
+            # the same scale on it: the finer view by its px per the other's (k)
+            half = int(round(0.5 * self._window * (1.0 if v is view else 1.0 / sc)))
+            sigma = k
+            m = int(math.ceil(3 * sigma)) + 2  # the smoothing's and the derivative's reach
+            side = 2 * (half + m) + 1
+            c = np.round(np.asarray(centre, float) - v.to_frame[:2, 2]) - (half + m)  # window origin, local px
+            crop = np.array([[1.0, 0.0, c[0]], [0.0, 1.0, c[1]], [0.0, 0.0, 1.0]])
+            g = cv2.warpAffine(v.gray, crop[:2], (side, side), flags=near, borderMode=cv2.BORDER_REPLICATE)
+            own = cv2.warpAffine(v.sat.view(np.uint8) | (v.fov == 0).view(np.uint8), crop[:2], (side, side), flags=near,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=1)
+            mp = _inv(other.to_frame) @ to_other @ v.to_frame @ crop
+            theirs = cv2.warpAffine(other.sat.view(np.uint8) | (other.fov == 0).view(np.uint8), mp[:2], (side, side),
+                                    flags=near, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
+            usable = cv2.dilate(own | theirs, np.ones((2 * m - 1, 2 * m - 1), np.uint8))[m:-m, m:-m] == 0
+            g1 = cv2.getGaussianKernel(2 * half + 1, 0.5 * half, cv2.CV_32F)
+            w = (g1 @ g1.T) * usable
+            if float(w.sum()) < 0.1:  # too little usable texture to compare: no verdict
+                return 1.0, 1.0
+            w /= w.sum()
+            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)
+            gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[m:-m, m:-m]
+            gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[m:-m, m:-m]
+            a, b, d = float(np.sum(w * gx * gx)), float(np.sum(w * gx * gy)), float(np.sum(w * gy * gy))
+            mean, r = 0.5 * (a + d), math.sqrt(0.25 * (a - d) ** 2 + b * b)
+            nz = self._grad_noise(round(sigma, 2)) * v.noise() ** 2
+            lo, hi = mean - r - nz, mean + r - nz
+            parts.append(max(lo, 0.0) / hi if hi > 1e-6 else 0.0)
+        return parts[0], parts[1]
+
+    def _edge_smeared(self, view: _View, est: np.ndarray, ref: _Keyframe, ref_to_frame: np.ndarray) -> float | None:
+        """For a keyframe from this frame: None when the target window (at ``est`` px in ``view``) is not
+        edge-like (isotropy at least ``edge_isotropy``), else the share of 2-D texture it keeps of the
+        sharpest keyframe it descends from (its isotropy over keyframe ``ref``'s, :meth:`_isotropies`,
+        times ``ref.texture``); below ``edge_texture_loss`` it is smeared (no keyframe). Compared along
+        the lineage, so a slow smear over several keyframes adds up. None under strong sensor noise
+        (denoised regions), where the fine texture cannot be measured."""
+        s = self.settings
+        if self._smooth > 0.0 or s.edge_isotropy <= 0.0:
+            return None
+        cur, key = self._isotropies(view, est, ref, ref_to_frame)
+        if cur >= s.edge_isotropy:
+            return None
+        return min(1.0, (cur / key if key > 0.0 else 1.0) * ref.texture)
 
     def _steady(self, chain: tuple, steps: float) -> tuple[tuple, bool]:
         """The frame-to-frame motion ``chain`` with its scale and rotation kept only when they are
