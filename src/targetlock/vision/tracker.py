@@ -626,7 +626,6 @@ class FeatureTracker(Tracker):
         self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
-        self._context_unique = False  # the selection's window, grown, is distinctive (see _grown_unique)
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self._per_frame: dict | None = None  # what is made of the frame being updated: its preprocessed
         # regions by (x0, y0, smoothing), "shift": (last accepted view, its phase-correlation shift)
@@ -970,7 +969,6 @@ class FeatureTracker(Tracker):
                             f"{self._window:.0f} px window: {why}")
             return False
         self._anchor = self._key = kf
-        self._context_unique = self._grown_unique(frame_bgr)
         self._from_anchor = np.eye(3)   # anchor frame -> last accepted frame (similarity)
         self._central_from_anchor = np.eye(3)  # ... the last accepted with the target near the view's centre
         self._prev = view               # last accepted frame's region ...
@@ -1783,28 +1781,6 @@ class FeatureTracker(Tracker):
             kf.self_ncc = float(score.max())
         return kf.self_ncc
 
-    def _grown_unique(self, frame: np.ndarray) -> bool:
-        """Whether the selection keyframe's window, grown by ``dense_context_grow``, is distinctive in
-        the selection ``frame`` (half resolution, band-passed): no place a quarter window or more
-        from the target correlates ``dense_unique_ncc`` with it. Only worked out (at selection) when
-        the window itself is not distinctive (:meth:`_self_similarity`); a window on a long, plain
-        edge stays an edge when grown."""
-        s = self.settings
-        kf = self._anchor
-        if s.dense_context_grow <= 1.0 or self._self_similarity(kf) < s.dense_unique_ncc:
-            return False
-        tpl = self._dense_template(kf, 0.5, np.eye(3), s.dense_context_grow)
-        if tpl is None:
-            return False
-        img, fov, origin = self._dense_image(frame)
-        half = tpl[0].shape[0] // 2
-        if img.shape[0] <= tpl[0].shape[0] or img.shape[1] <= tpl[0].shape[1]:
-            return False
-        score = cv2.matchTemplate(img, tpl[0], cv2.TM_CCOEFF_NORMED)
-        t = np.round(0.5 * (kf.target - origin)).astype(int) - half  # the target's place in the score map
-        cv2.circle(score, (int(t[0]), int(t[1])), max(3, int(round(0.25 * self._window)) // 2), -2.0, -1)
-        return float(score.max()) < s.dense_unique_ncc
-
     def _dense_search(self, frame: np.ndarray) -> tuple[np.ndarray, _Keyframe, float, bool, np.ndarray] | None:
         """Best place (frame px) of the keyframes' dense templates in the whole frame (half
         resolution, refined at full resolution), with its keyframe, correlation, whether it is
@@ -1834,7 +1810,7 @@ class FeatureTracker(Tracker):
                     # `leave`: re-locked 7-8 px off).
                     grow = 1.0
                     if self._self_similarity(kf) >= s.dense_unique_ncc:
-                        if kf is not self._anchor or not self._context_unique:
+                        if kf is not self._anchor or s.dense_context_grow <= 1.0:
                             continue
                         grow = s.dense_context_grow
                     small, full = self._dense_template(kf, 0.5, view_sim, grow), self._dense_template(kf, 1.0, view_sim, grow)
