@@ -153,21 +153,3 @@ def test_a_strong_chain_carries_the_frame_after_a_reported_disputed_frame():
     assert np.all(errs[45:47] < 5.0), errs[40:].round(2)              # frames 46, 47
     old, _ = _run(FeatureTracker(TrackerSettings(chain_after_reported=False)), frames)
     assert np.isfinite(old[45]) and not np.isfinite(old[46]), old[40:].round(2)
-
-
-def test_an_edge_like_selection_window_is_searched_with_its_surroundings_while_lost():
-    """`vision-eval`'s `specular` sequence on the coffee photograph, seed 2: the target window lies on a
-    soft rim (its band-passed texture matches its own region 0.69 a quarter window away), so it was
-    never searched for densely, and with glare sliding over it the target, lost on frame 33, stayed
-    lost in view to the end (frame 65). The selection's window is now searched with twice its size
-    (the surroundings tell the places along the rim apart): re-acquired, never misplaced."""
-    target = PlanarTarget((0.2, 0.2), photo_texture("coffee"), (0.0, 0.0))
-    frames = render_sequence("specular", EvalSettings(photos=()), seed=2, target=target)
-    assert all(f.visible for f in frames)
-    tracker = FeatureTracker()
-    errs, res = _run(tracker, frames)
-    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)     # never a wrong position
-    assert tracker.stats["dense_reacquisitions"] >= 1
-    assert np.sum(np.isfinite(errs[40:])) >= 8, errs[30:].round(1)   # re-acquired, tracked on
-    old, _ = _run(FeatureTracker(TrackerSettings(dense_context_grow=1.0)), frames)
-    assert not np.any(np.isfinite(old[40:])), old[30:].round(1)

@@ -477,11 +477,6 @@ class TrackerSettings:
                                           "searched for densely")
     dense_agree_ncc: float = param(0.3, lo=-1.0, hi=1.0,
                                    doc="see dense_energy_ratio")
-    dense_context_grow: float = param(2.0, lo=1.0, hi=4.0,
-                                      doc="a keyframe whose target window is one edge or a repeated texture "
-                                          "(dense_unique_ncc) is searched for densely with a window this many times "
-                                          "larger (its surroundings tell the places along the edge apart); 1: not "
-                                          "searched")
     dense_presearch: bool = param(True, doc="pre-search the frame densely at quarter resolution: a template is "
                                             "searched at half resolution (which alone decides) only where it "
                                             "stands out there (saves CPU time while lost)")
@@ -1707,8 +1702,7 @@ class FeatureTracker(Tracker):
             kf.band = _band(kf.view.gray, *self._BAND_FULL), self._band_valid(kf.view.fov, kf.view.sat, 1.0)
         return kf.band
 
-    def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray,
-                        grow: float = 1.0) -> tuple[np.ndarray, float] | None:
+    def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or
         0.5) to the scale and rotation of the view ``from_anchor`` (anchor -> that view); highlights
         and what lies outside the field of view are zero (neutral for the correlation). Returns (template, its texture energy
@@ -1716,7 +1710,7 @@ class FeatureTracker(Tracker):
         bp, valid = self._kf_band(kf)
         rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
-        half = int(round(0.5 * self._window * scale * grow))
+        half = int(round(0.5 * self._window * scale))
         side = 2 * half + 1
         t_local = kf.target - kf.view.to_frame[:2, 2]
         m = np.hstack([lin_inv, (t_local - lin_inv @ np.array([half, half], float))[:, None]])
@@ -1802,22 +1796,11 @@ class FeatureTracker(Tracker):
             for view_sim in views:
                 anchor = None
                 for kf in dict.fromkeys(kfs):  # unique, in order
-                    # A window that is one edge or a repeated texture matches elsewhere as well as at
-                    # the target: the selection's is searched with its wider surroundings instead
-                    # (seed 2's coffee `specular`: a window on a soft rim lost for 36 frames in view).
-                    # Not a later keyframe's: its target may carry the error of the frames it was
-                    # made from, and the wider context found that place again (seed 5's coffee
-                    # `leave`: re-locked 7-8 px off).
-                    grow = 1.0
-                    if self._self_similarity(kf) >= s.dense_unique_ncc:
-                        if kf is not self._anchor or s.dense_context_grow <= 1.0:
-                            continue
-                        grow = s.dense_context_grow
-                    small, full = self._dense_template(kf, 0.5, view_sim, grow), self._dense_template(kf, 1.0, view_sim, grow)
+                    small, full = self._dense_template(kf, 0.5, view_sim), self._dense_template(kf, 1.0, view_sim)
                     if kf is self._anchor:
                         anchor = full
                     # too weak a texture to tell the target from anything else (band-passed std < 1.5 of 40)
-                    if small is None or full is None or full[1] < 2.25:
+                    if small is None or full is None or full[1] < 2.25 or self._self_similarity(kf) >= s.dense_unique_ncc:
                         continue
                     # A later keyframe's window with much more texture than the selection's that does
                     # not look like it (both seen at the view's scale and rotation) holds something new
@@ -1836,10 +1819,6 @@ class FeatureTracker(Tracker):
             return None
         img, fov, origin = self._dense_image(frame)
         tpls = self._dense_tpl
-        # The second best place counts from half a window's half-side away, at the window's size
-        # even for a grown template (its own size would hide the places along an edge near the target).
-        w_half = int(round(0.25 * self._window))  # the window's half-side at half resolution
-        r_half = max(3, w_half // 2)
         if s.dense_presearch:
             # Pre-search at quarter resolution (a third of a template's cost): a template that
             # stands out nowhere there is not searched at half resolution, whose search alone
@@ -1858,7 +1837,7 @@ class FeatureTracker(Tracker):
                 hq = t[3].shape[0] // 2
                 score_q = spec_q.match(t[3])
                 score_q[self._fov_quarter[hq:hq + score_q.shape[0], hq:hq + score_q.shape[1]] == 0] = -1.0
-                _, top_q, second_q = _peaks(score_q, max(2, ((w_half + 1) // 2) // 2))
+                _, top_q, second_q = _peaks(score_q, max(2, hq // 2))
                 if top_q >= s.dense_presearch_ncc and top_q >= s.dense_presearch_lead * second_q:
                     keep.append(t)
                 else:
@@ -1870,7 +1849,7 @@ class FeatureTracker(Tracker):
             half = small.shape[0] // 2
             score = spec.match(small)
             score[fov[half:half + score.shape[0], half:half + score.shape[1]] == 0] = -1.0  # target in view only
-            loc, top, second = _peaks(score, r_half)
+            loc, top, second = _peaks(score, max(3, half // 2))
             peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full,
                           view_sim))
         at_anchor = [p for p, kf, *_ in peaks if kf is self._anchor]
