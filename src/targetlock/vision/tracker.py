@@ -1457,9 +1457,8 @@ class FeatureTracker(Tracker):
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]]
-        elif (chain is not None and not suspect and not relock and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))
-              and self._chain_only < 3
-              and chain[3] >= 2 * s.min_inliers):
+        elif (chain is not None and not suspect and not relock and self._chain_only < 3 and chain[3] >= 2 * s.min_inliers
+              and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
             conf = 0.5 * min(1.0, n_in / max(len(self._prev_pts), 1) / 0.8)
