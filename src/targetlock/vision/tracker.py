@@ -435,6 +435,10 @@ class TrackerSettings:
                                          "and at least 2 of those features lie within 0.3 window of the target (or a "
                                          "dense match agrees with the chain and 2 of the chain's features lie there; "
                                          "accepted with low confidence, no keyframe); 0: always reject")
+    chain_after_reported: bool = param(True, doc="a frame after rejected frames that were all reported from a strong "
+                                                 "chain whose target patch matched the keyframe's (a dense match "
+                                                 "disputed it) may be carried by a strong chain alone, as after an "
+                                                 "accepted frame")
     patch_energy_ratio: float = param(1.6, lo=1.0, hi=100.0,
                                       doc="target-patch texture energy ratio (either way) beyond which a decorrelated "
                                           "patch counts as covered")
@@ -620,6 +624,7 @@ class FeatureTracker(Tracker):
                       "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
                       "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0}
         self._chain_only = 0
+        self._verified_misses = False  # every miss since the last accepted frame was reported (see _update)
         self._lost_frames = 0
         self._vel_known = False
         self._clock = FrameClock()
@@ -1330,6 +1335,8 @@ class FeatureTracker(Tracker):
         if res is not None:
             return res
         coasted, self._coasted = self._coasted, None
+        # misses that were all reported from a chain whose target patch matched the keyframe's
+        self._verified_misses = coasted is not None and (self._misses == 0 or self._verified_misses)
         self._misses += 1
         self.stats["misses"] += 1
         # The target keeps moving while frames are rejected (blur, a glint, a covered moment): the
@@ -1465,8 +1472,8 @@ class FeatureTracker(Tracker):
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]]
-        elif (chain is not None and not suspect and not relock and (self._misses == 0 or disputed) and self._chain_only < 3
-              and chain[3] >= 2 * s.min_inliers):
+        elif (chain is not None and not suspect and not relock and self._chain_only < 3 and chain[3] >= 2 * s.min_inliers
+              and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
             conf = 0.5 * min(1.0, n_in / max(len(self._prev_pts), 1) / 0.8)
