@@ -17,8 +17,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     Keyframes are renewed when scale or rotation drift too far or the match weakens, only from
     well-supported frames, and not from an edge-like target window (a rim, a fold: it locates the
     target across the edge only, and along it the chain and the keyframe slide together) that lost
-    the 2-D texture of its sharpest keyframe (motion blur along the edge); the selection keyframe (the anchor) is tried again whenever the view
-    returns close to it and overrules a drifted chain. When too few corners follow the keyframe
+    the 2-D texture of its sharpest keyframe (motion blur along the edge); the selection keyframe
+    (the anchor) is tried again whenever the view returns close to it and overrules a drifted chain. When too few corners follow the keyframe
     (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
     window stands in for them, accepted only when it agrees with the chain. The view's scale and
     rotation change per frame by at most a plausible step when only the chain or a few keyframe
