@@ -18,8 +18,8 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     well-supported frames, and not from an edge-like target window (a rim, a fold: it locates the
     target across the edge only, and along it the chain and the keyframe slide together) that lost
     the 2-D texture of its sharpest keyframe (motion blur along the edge); the selection keyframe
-    (the anchor) is tried again whenever the view returns close to it and overrules a drifted chain. When too few corners follow the keyframe
-    (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
+    (the anchor) is tried again whenever the view returns close to it and overrules a drifted chain.
+    When too few corners follow the keyframe (weak texture, blur, noise), a **dense** ECC alignment of the keyframe's high-passed target
     window stands in for them, accepted only when it agrees with the chain. The view's scale and
     rotation change per frame by at most a plausible step when only the chain or a few keyframe
     features measure them (features along one edge determine them poorly); a chain beyond it is
@@ -1591,13 +1591,12 @@ class FeatureTracker(Tracker):
         # blur along the edge), a keyframe made there hands the slide on: on seed 3's coffee `blur`
         # keyframes made in the smear were 2.4 and 10.1 px off and 31 % of the frames were reported
         # 9-17 px off; on seed 4's coffee `rotation` 5-6.5 px off ones drifted to a false lock.
-        texture = None
-        if renew and not relock and supported and strong:
-            texture = self._edge_smeared(view, est, ref, ref_to_frame)
-            if texture is not None and texture < s.edge_texture_loss:
-                self.stats["edge_smeared"] += 1
-                renew = False
-        if renew and not relock and supported and strong:
+        renew = renew and not relock and supported and strong
+        texture = self._edge_smeared(view, est, ref, ref_to_frame) if renew else None
+        if texture is not None and texture < s.edge_texture_loss:
+            self.stats["edge_smeared"] += 1
+            renew = False
+        if renew:
             kf_new = self._make_keyframe(frame, view, est, new_from_anchor, sharp=not blurred)
             if kf_new is not None:
                 kf_new.texture = 1.0 if texture is None else texture
