@@ -4,7 +4,7 @@ that it must not report at a wrong position."""
 import numpy as np
 import pytest
 
-from targetlock.vision import FeatureTracker, PlanarTarget
+from targetlock.vision import FeatureTracker, PlanarTarget, RenderSettings
 from targetlock.vision.evaluate import EvalSettings, render_sequence
 from targetlock.vision.texture import photo_texture
 from targetlock.vision.tracker import TrackerSettings
@@ -209,3 +209,22 @@ def test_a_large_window_keeps_its_features_clear_of_the_glints():
     bad = sum(bool(r.valid and np.hypot(*(r.position_px - f.truth_px)) > 8.0)
               for i, f in enumerate(frames[1:], 1) for r in [old.update(f.image, i / 22.0)])
     assert bad >= 5, bad                                              # the false lock before
+
+
+def test_a_large_window_searches_densely_for_the_target_not_for_its_periphery():
+    """`vision-eval`'s `occlusion` sequence on the mucosa, seed 0, first 36 frames, selected with a 160 px
+    window: the instrument was already inside the window when the last keyframe was made (frame 20), a
+    frame before it covered the target. While the target was covered, the whole-frame dense search with
+    that keyframe's 160 px template found the instrument 184 px away (correlation 0.46, leading every
+    other place) and reported it on frames 31 and 35. The dense templates are now the central 80 px:
+    no wrong position."""
+    target = PlanarTarget.mucosa(seed=0, texture_px=RenderSettings().texture_px)
+    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=0, target=target)[:36]
+
+    def false_locks(tracker):
+        assert tracker.select(frames[0].image, frames[0].truth_px, 160), tracker.failure
+        return sum(bool(r.valid and np.hypot(*(r.position_px - f.truth_px)) > 8.0)
+                   for i, f in enumerate(frames[1:], 1) for r in [tracker.update(f.image, i / 22.0)])
+
+    assert false_locks(FeatureTracker()) == 0
+    assert false_locks(FeatureTracker(TrackerSettings(dense_template_max_px=4096.0))) >= 2   # before

@@ -415,16 +415,16 @@ class TrackerSettings:
                                        doc="largest bright blob that is a glint; larger bright areas: only clipped pixels")
     highlight_max_share: float = param(0.25, lo=0.0, hi=1.0,
                                        doc="largest share of a region masked as highlight (the brightest are kept)")
+    large_window_px: float = param(100.0, unit="px", lo=8.0, hi=4096.0,
+                                   doc="a window this large or larger, as asked for (select()'s window_px), is large: "
+                                       "its features are kept highlight_clearance_px clear of highlights and its "
+                                       "dense re-acquisition templates are its central dense_template_max_px")
     highlight_clearance_px: int = param(5, unit="px", lo=0, hi=50,
-                                        doc="in a window of at least highlight_clearance_window_px, a feature is "
-                                            "neither detected nor followed within this distance of a highlight (the "
-                                            "reach of the Lucas-Kanade window, lk_window_px // 2): a glint's halo "
-                                            "reaches beyond its mask, and a corner whose flow window sees it follows "
-                                            "the glint, which slides over the tissue; 0: only features on highlights "
-                                            "are left out")
-    highlight_clearance_window_px: float = param(100.0, unit="px", lo=8.0, hi=4096.0,
-                                                 doc="least window side (as selected, after select()'s widening) that "
-                                                     "keeps its features highlight_clearance_px clear of highlights")
+                                        doc="in a large window (large_window_px), a feature is neither detected nor "
+                                            "followed within this distance of a highlight (the reach of the "
+                                            "Lucas-Kanade window, lk_window_px // 2): a glint's halo reaches beyond "
+                                            "its mask, and a corner whose flow window sees it follows the glint, "
+                                            "which slides over the tissue; 0: only features on highlights are left out")
     corner_noise_floor: float = param(4.0, lo=0.0, hi=1000.0,
                                       doc="a corner whose strength (smallest eigenvalue of the 5 px structure tensor of "
                                           "the normalised gray) is below this x the region's noise variance is noise "
@@ -487,6 +487,9 @@ class TrackerSettings:
                                            "frame after a candidate was found)")
     dense_reacquire_ncc: float = param(0.35, lo=0.0, hi=1.0,
                                        doc="least normalised correlation of a dense re-acquisition candidate")
+    dense_template_max_px: float = param(80.0, unit="px", lo=8.0, hi=4096.0,
+                                         doc="largest side of a large window's (large_window_px) dense "
+                                             "re-acquisition templates (a keyframe's target window): its central part")
     dense_reacquire_lead: float = param(1.7, lo=1.0, hi=100.0,
                                         doc="least ratio of the candidate's correlation to the best other place's")
     dense_unique_ncc: float = param(0.6, lo=-1.0, hi=1.0,
@@ -627,6 +630,7 @@ class FeatureTracker(Tracker):
         c = 2 * s.highlight_clearance_px + 1
         self._clearance = np.ones((c, c), np.uint8)
         self._clear = False  # features are kept clear of highlights (a large window, see select)
+        self._tpl_side = math.inf  # largest side of a dense re-acquisition template (px; see select)
         self._halo = np.ones((9, 9), np.uint8)  # reach of the target patch's band-pass (sigma 4 px) beyond a highlight
         self._fov: np.ndarray | None = None
         self._hann: np.ndarray | None = None
@@ -982,18 +986,26 @@ class FeatureTracker(Tracker):
             window, quality, masked, view, pts, _ = found
             if window != self._window:
                 self._setup_window(frame_bgr, window)
-            # A glint's halo reaches beyond its mask, and a corner whose flow window sees it follows the glint,
-            # which slides over the tissue as the view turns. In a large window such corners near the target
-            # are outnumbered by true ones farther out, and the RANSAC affine bends to fit both groups: the
-            # chain and the keyframe then agree on a position the glints dragged along (seed 2's coffee
-            # `specular` at 160 px: 12-21 px off on 89 % of the frames, corners on the glints' rims 2-15 px
-            # off, the spoon's 80-105 px away within 0.3 px). Such windows keep their features clear of
-            # highlights. In a window of the default 80 px there is no far group to hide behind (the chain and
-            # the keyframe disagree, the frame is rejected); there leaving them out tracked more (seeds 0-6:
-            # +0.0-0.04) but changed which weak-texture drifts the checks catch (new false locks on four seeds).
-            # The clearance does not choose the window (under strong noise, fewer corners clear of the
-            # glints kept seed 3's coffee `noise` in an 80 px window instead of 160, and it was lost).
-            if masked and s.highlight_clearance_px > 0 and window >= s.highlight_clearance_window_px:
+            # A window the user chose large (not one widened here for want of corners, which needs every
+            # corner it has and whose periphery is what makes the target distinctive) holds plenty far from
+            # the target, which the checks do not see through:
+            # - A glint's halo reaches beyond its mask, and a corner whose flow window sees it follows the
+            #   glint, which slides over the tissue as the view turns. In a large window such corners near
+            #   the target are outnumbered by true ones farther out, and the RANSAC affine bends to fit both
+            #   groups: the chain and the keyframe then agree on a position the glints dragged along (seed
+            #   2's coffee `specular` at 160 px: 8-21 px off on 89 % of the frames, corners on the glints'
+            #   rims 2-15 px off, the spoon's 80-105 px away within 0.3 px). Its features are kept clear of
+            #   highlights. In the default 80 px window there is no far group to hide behind (the chain and
+            #   the keyframe disagree, the frame is rejected); leaving them out there tracked more (seeds
+            #   0-6: +0.0-0.04) but changed which weak-texture drifts the checks catch (new false locks on
+            #   four seeds). The clearance does not choose the window (fewer corners clear of the glints
+            #   kept seed 3's coffee `noise` at 80 px instead of 160, and it was lost).
+            # - The dense re-acquisition looks for the target's surroundings, not the window's periphery,
+            #   where e.g. an instrument coming over the target already showed in the last keyframe (seed
+            #   0's mucosa `occlusion` at 160 px: the search found its edge and re-locked 184 px off).
+            large = window_px >= s.large_window_px
+            self._tpl_side = s.dense_template_max_px if large else math.inf
+            if large and masked and s.highlight_clearance_px > 0:
                 self._clear = True
                 clear = self._features(view, p, 0.5 * self._window, quality, masked)
                 if len(clear) >= s.min_inliers:
@@ -1842,14 +1854,15 @@ class FeatureTracker(Tracker):
         return kf.band
 
     def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """Band-passed target window of keyframe ``kf`` (side = window), resampled at ``scale`` (1 or
-        0.5) to the scale and rotation of the view ``from_anchor`` (anchor -> that view); highlights
+        """Band-passed target window of keyframe ``kf`` (side = window; a large one's centre, see select),
+        resampled at ``scale`` (1 or 0.5) to the scale and rotation of the view ``from_anchor`` (anchor ->
+        that view); highlights
         and what lies outside the field of view are zero (neutral for the correlation). Returns (template, its texture energy
         per valid pixel) or None when too little of it is usable."""
         bp, valid = self._kf_band(kf)
         rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
-        half = int(round(0.5 * self._window * scale))
+        half = int(round(0.5 * min(self._window, self._tpl_side) * scale))  # a large window: its centre (select)
         side = 2 * half + 1
         t_local = kf.target - kf.view.to_frame[:2, 2]
         m = np.hstack([lin_inv, (t_local - lin_inv @ np.array([half, half], float))[:, None]])
