@@ -228,3 +228,26 @@ def test_a_large_window_searches_densely_for_the_target_not_for_its_periphery():
 
     assert false_locks(FeatureTracker()) == 0
     assert false_locks(FeatureTracker(TrackerSettings(dense_template_max_px=4096.0))) >= 2   # before
+
+
+def test_a_keyframe_made_on_the_chain_alone_does_not_correct_the_chain():
+    """`vision-eval`'s `leave` sequence on the coffee photograph, seed 2, first 23 frames, selected with a
+    160 px window: on frame 16, near the edge of the view, the keyframe did not match and the chain
+    alone (37 inliers) carried the frame 3.5 px off and made a keyframe. On frame 17 that keyframe's
+    features (20 inliers, around the target) put the target 3.4 px from the chain's estimate, and as
+    a later keyframe's strong match it "corrected" the chain: 6.8 px off, then 7.9-8.2 px on frames 18-22.
+    A keyframe made on the chain alone holds the chain's own error: it no longer corrects it, and
+    the target is followed 1.4-3.3 px off through frame 22."""
+    target = PlanarTarget((0.2, 0.2), photo_texture("coffee"), (0.0, 0.0))
+    frames = render_sequence("leave", EvalSettings(photos=()), seed=2, target=target)[:23]
+
+    def errors(tracker):
+        assert tracker.select(frames[0].image, frames[0].truth_px, 160), tracker.failure
+        return np.array([float(np.hypot(*(r.position_px - f.truth_px))) if r.valid else np.inf
+                         for i, f in enumerate(frames[1:], 1) for r in [tracker.update(f.image, i / 22.0)]])
+
+    errs = errors(FeatureTracker())
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)     # never a wrong position
+    assert np.sum(errs[16:] < 4.0) >= 4, errs.round(1)                # frames 17-22 still tracked
+    old = errors(FeatureTracker(TrackerSettings(chain_keyframe_corrects=True)))
+    assert np.sum(old[np.isfinite(old)] > 8.0) >= 3, old.round(1)     # the false lock before

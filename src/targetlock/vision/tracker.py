@@ -381,6 +381,9 @@ class TrackerSettings:
                                               "other than the selection overrules a chain that disagrees by up to "
                                               "this much (the selection's: by any amount), unless the sensor is "
                                               "noisy (denoise_px in use); 0: only the selection's")
+    chain_keyframe_corrects: bool = param(False, doc="let a keyframe made from a frame the chain alone carried "
+                                                     "correct the chain (keyframe_correction_px); unsafe: it holds "
+                                                     "the chain's own error (for comparison)")
     max_jump_px: float = param(30.0, unit="px", lo=1.0, hi=1000.0,
                                doc="largest distance from the constant-velocity prediction (else: false jump)")
     max_view_scale_step: float = param(0.06, lo=0.0, hi=10.0,
@@ -599,6 +602,8 @@ class _Keyframe:
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
+    by_chain: bool = False   # made from a frame the chain alone carried (no keyframe or dense match): it
+    # holds the chain's own error and cannot correct it
     unseen: int = 0          # made from a target patch that could not be compared (mostly glare): how
     # many such keyframes in a row led to it (0: its target patch was compared)
     patch: tuple | None = None  # the target's own patch (band-passed gray, not-highlight mask, local
@@ -1485,7 +1490,12 @@ class FeatureTracker(Tracker):
                     # not under strong sensor noise (denoised regions), where keyframes are made from
                     # noisy matches and carry their own error (seeds 3 and 4, coffee `noise`: later
                     # keyframes 5-12 px off "corrected" chains 2-5 px off, 10 frames of false lock).
-                    within = kf is self._anchor or (agree <= s.keyframe_correction_px and self._smooth == 0.0)
+                    # Nor from a keyframe made where the chain alone carried the frame: it holds the chain's
+                    # own error (seed 2's coffee `leave` at 160 px: one made 3.5 px off near the edge of the
+                    # view, where the lens distortion bends the two feature sets' extrapolations apart,
+                    # "corrected" the next frame's chain from 3.4 to 6.8 px off, then 8 px for five frames).
+                    within = kf is self._anchor or (agree <= s.keyframe_correction_px and self._smooth == 0.0
+                                                    and (not kf.by_chain or s.chain_keyframe_corrects))
                     if n_in < 2 * s.min_inliers or not around or not within:
                         self.stats["inconsistent"] += 1  # X_n-1 -> X_n disagrees with keyframe -> X_n
                         return None
@@ -1655,6 +1665,7 @@ class FeatureTracker(Tracker):
             if kf_new is not None:
                 kf_new.texture = 1.0 if texture is None else texture
                 kf_new.unseen = 0 if seen else ref.unseen + 1
+                kf_new.by_chain = key is None and dense is None
                 self._recent.append(kf_new)
                 self._key = kf_new
                 self._weak_keys = self._weak_keys + 1 if weak else 0
