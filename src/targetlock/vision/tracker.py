@@ -1867,9 +1867,9 @@ class FeatureTracker(Tracker):
     def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Band-passed target window of keyframe ``kf`` (side = window; a large one's centre, see select),
         resampled at ``scale`` (1 or 0.5) to the scale and rotation of the view ``from_anchor`` (anchor ->
-        that view); highlights
-        and what lies outside the field of view are zero (neutral for the correlation). Returns (template, its texture energy
-        per valid pixel) or None when too little of it is usable."""
+        that view); highlights and what lies outside the field of view are zero (neutral for the
+        correlation). Returns (template, its texture energy per valid pixel) or None when too little of
+        it is usable."""
         bp, valid = self._kf_band(kf)
         rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
