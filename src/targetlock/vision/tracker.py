@@ -659,6 +659,7 @@ class FeatureTracker(Tracker):
         self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
+        self._fov_full: np.ndarray | None = None  # a region's field-of-view mask when wholly inside (_warped_fov)
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self._per_frame: dict | None = None  # what is made of the frame being updated: its preprocessed
         # regions by (x0, y0, smoothing), "shift": (last accepted view, its phase-correlation shift)
@@ -786,11 +787,32 @@ class FeatureTracker(Tracker):
         size = (self._side, self._side)
         inv = cv2.WARP_INVERSE_MAP
         raw = cv2.warpAffine(base.raw, m, size, flags=cv2.INTER_LINEAR | inv, borderMode=cv2.BORDER_REPLICATE)
-        sat = cv2.warpAffine(base.sat.view(np.uint8), m, size, flags=cv2.INTER_NEAREST | inv,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        fov = cv2.warpAffine(self._fov, local_to_frame[:2], size, flags=cv2.INTER_NEAREST | inv,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return self._smoothed(self._normalise(raw, fov, sat, local_to_frame.copy()))
+        if base.sat.any():
+            sat = cv2.warpAffine(base.sat.view(np.uint8), m, size, flags=cv2.INTER_NEAREST | inv,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        else:  # no highlights: nothing to resample (a nearest-neighbour warp costs as much as the gray's)
+            sat = np.zeros((self._side, self._side), bool)
+        return self._smoothed(self._normalise(raw, self._warped_fov(local_to_frame), sat, local_to_frame.copy()))
+
+    def _warped_fov(self, local_to_frame: np.ndarray) -> np.ndarray:
+        """The field-of-view mask (uint8, 255 inside) resampled onto a region of side ``self._side``
+        through ``local_to_frame`` (3x3). A region whose footprint (with 2 px to spare for the
+        nearest-neighbour rounding) lies wholly inside the field of view is all inside: a shared,
+        read-only mask instead of a warp (most regions away from the rim of the view)."""
+        side = self._side
+        h, w = self._fov.shape
+        c = _apply(local_to_frame, ((0.0, 0.0), (side - 1.0, 0.0), (0.0, side - 1.0), (side - 1.0, side - 1.0)))
+        x0, y0 = (math.floor(v) - 2 for v in c.min(axis=0))
+        x1, y1 = (math.ceil(v) + 3 for v in c.max(axis=0))  # exclusive
+        if x0 >= 0 and y0 >= 0 and x1 <= w and y1 <= h:
+            ii = self._fov_sum
+            if int(ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]) == (x1 - x0) * (y1 - y0):
+                if self._fov_full is None or self._fov_full.shape[0] != side:
+                    self._fov_full = np.full((side, side), 255, np.uint8)
+                    self._fov_full.flags.writeable = False
+                return self._fov_full
+        return cv2.warpAffine(self._fov, local_to_frame[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
                   masked: bool = True) -> np.ndarray:
