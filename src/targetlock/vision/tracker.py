@@ -601,6 +601,8 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
+    orb_src: tuple | None = None  # what orb_pts/orb_desc are described from on first use (see
+    # FeatureTracker._orb_features): (frame crop, its field-of-view mask, crop origin px, window px)
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     by_chain: bool = False   # made from a frame the chain alone carried (no keyframe or dense match): it
     # holds the chain's own error and cannot correct it
@@ -916,35 +918,44 @@ class FeatureTracker(Tracker):
             aff = _h(aff0)
         return aff, _similarity(aff, centre), inl, n_in
 
-    def _orb_prep(self, frame: np.ndarray, roi=None) -> tuple[np.ndarray, np.ndarray]:
+    def _orb_prep(self, bgr: np.ndarray, fov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gray for ORB (local contrast equalised with tiles of ~90 x 72 px, slightly smoothed:
         repeatable keypoints on low-contrast tissue) and the detection mask (field of view, no
-        highlights), of the whole frame or of ``roi`` = (x0, y0, x1, y1)."""
-        x0, y0, x1, y1 = roi if roi is not None else (0, 0, frame.shape[1], frame.shape[0])
-        bgr = frame[y0:y1, x0:x1]
+        highlights) of an image region ``bgr`` whose field-of-view mask is ``fov``."""
         gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
-        mask = self._fov[y0:y1, x0:x1].copy()
+        mask = fov.copy()
         if bgr.ndim == 3:
             mask[self._highlights(bgr, gray, mask)] = 0
-        grid = (max(1, round((x1 - x0) / 90)), max(1, round((y1 - y0) / 72)))
+        grid = (max(1, round(bgr.shape[1] / 90)), max(1, round(bgr.shape[0] / 72)))
         clahe = self._clahe.get(grid)
         if clahe is None:
             clahe = self._clahe[grid] = cv2.createCLAHE(clipLimit=2.0, tileGridSize=grid)
         return cv2.GaussianBlur(clahe.apply(gray), (0, 0), 1.0), mask
 
-    def _orb_describe(self, frame: np.ndarray, centre: np.ndarray):
-        """ORB keypoints (frame px) and descriptors within ``window`` px of ``centre``."""
+    def _orb_source(self, frame: np.ndarray, centre: np.ndarray) -> tuple:
+        """What :meth:`_orb_features` describes a keyframe with target at ``centre`` (px) from: a copy
+        of the frame's region within the window + 32 px of it (the frame may be a reused buffer),
+        its field-of-view mask, the region's origin (px) and the window (px)."""
         half = self._window + 32
         h, w = frame.shape[:2]
         x0, y0 = int(max(0, centre[0] - half)), int(max(0, centre[1] - half))
         x1, y1 = int(min(w, centre[0] + half + 1)), int(min(h, centre[1] + half + 1))
-        gray, mask = self._orb_prep(frame, (x0, y0, x1, y1))
-        kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
-        if desc is None or len(kps) < 4:
-            return None, None
-        pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
-        near = np.max(np.abs(pts - centre), axis=1) <= self._window
-        return pts[near], desc[near]
+        return frame[y0:y1, x0:x1].copy(), self._fov[y0:y1, x0:x1], (x0, y0), self._window
+
+    def _orb_features(self, kf: _Keyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """ORB keypoints (frame px) and descriptors of keyframe ``kf`` within its window of its
+        target, described on first use: only the whole-frame re-acquisition needs them, and only
+        of the anchor and the latest sharp keyframe (most keyframes are never searched for)."""
+        if kf.orb_src is not None:
+            bgr, fov, (x0, y0), window = kf.orb_src
+            kf.orb_src = None
+            gray, mask = self._orb_prep(bgr, fov)
+            kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
+            if desc is not None and len(kps) >= 4:
+                pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
+                near = np.max(np.abs(pts - kf.target), axis=1) <= window
+                kf.orb_pts, kf.orb_desc = pts[near], desc[near]
+        return kf.orb_pts, kf.orb_desc
 
     def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
                        from_anchor: np.ndarray, pts: np.ndarray | None = None, sharp: bool = True) -> _Keyframe | None:
@@ -956,7 +967,7 @@ class FeatureTracker(Tracker):
             return None
         kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor, sharp=sharp)
         if self.settings.reacquire and sharp:
-            kf.orb_pts, kf.orb_desc = self._orb_describe(frame, target)
+            kf.orb_src = self._orb_source(frame, target)
         self.stats["keyframes"] += 1
         return kf
 
@@ -1812,11 +1823,11 @@ class FeatureTracker(Tracker):
         # with enough descriptors (weak texture): the frame's ORB search would be wasted.
         sharp = [k for k in self._recent if k.sharp][-1:]  # the latest not made from a blurred view
         kfs = [k for k in [self._anchor, *sharp]
-               if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
+               if (desc := self._orb_features(k)[1]) is not None and len(desc) >= s.reacquire_min_inliers]
         if not kfs:
             return None
         box = self._search_box()
-        gray, mask = self._orb_prep(frame, box)
+        gray, mask = self._orb_prep(frame[box[1]:box[3], box[0]:box[2]], self._fov[box[1]:box[3], box[0]:box[2]])
         kps, desc = self._orb.detectAndCompute(gray, mask)
         if desc is None or len(kps) < s.reacquire_min_inliers:
             return None
