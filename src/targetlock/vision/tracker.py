@@ -601,6 +601,8 @@ class _Keyframe:
     from_anchor: np.ndarray  # 3x3 similarity anchor-frame -> this frame
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
+    orb_src: tuple | None = None  # what orb_pts/orb_desc are described from on first use (see
+    # FeatureTracker._orb_features): (frame crop, its field-of-view mask, crop origin px, window px)
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     by_chain: bool = False   # made from a frame the chain alone carried (no keyframe or dense match): it
     # holds the chain's own error and cannot correct it
@@ -659,6 +661,7 @@ class FeatureTracker(Tracker):
         self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
         self._fov_quarter: np.ndarray | None = None
+        self._fov_full: np.ndarray | None = None  # a region's field-of-view mask when wholly inside (_warped_fov)
         self._box: tuple[int, int, int, int] | None = None  # whole-frame searches: (x0, y0, x1, y1) px
         self._per_frame: dict | None = None  # what is made of the frame being updated: its preprocessed
         # regions by (x0, y0, smoothing), "shift": (last accepted view, its phase-correlation shift)
@@ -786,11 +789,32 @@ class FeatureTracker(Tracker):
         size = (self._side, self._side)
         inv = cv2.WARP_INVERSE_MAP
         raw = cv2.warpAffine(base.raw, m, size, flags=cv2.INTER_LINEAR | inv, borderMode=cv2.BORDER_REPLICATE)
-        sat = cv2.warpAffine(base.sat.view(np.uint8), m, size, flags=cv2.INTER_NEAREST | inv,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        fov = cv2.warpAffine(self._fov, local_to_frame[:2], size, flags=cv2.INTER_NEAREST | inv,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return self._smoothed(self._normalise(raw, fov, sat, local_to_frame.copy()))
+        if base.sat.any():
+            sat = cv2.warpAffine(base.sat.view(np.uint8), m, size, flags=cv2.INTER_NEAREST | inv,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        else:  # no highlights: nothing to resample (a nearest-neighbour warp costs as much as the gray's)
+            sat = np.zeros((self._side, self._side), bool)
+        return self._smoothed(self._normalise(raw, self._warped_fov(local_to_frame), sat, local_to_frame.copy()))
+
+    def _warped_fov(self, local_to_frame: np.ndarray) -> np.ndarray:
+        """The field-of-view mask (uint8, 255 inside) resampled onto a region of side ``self._side``
+        through ``local_to_frame`` (3x3). A region whose footprint (with 2 px to spare for the
+        nearest-neighbour rounding) lies wholly inside the field of view is all inside: a shared,
+        read-only mask instead of a warp (most regions away from the rim of the view)."""
+        side = self._side
+        h, w = self._fov.shape
+        c = _apply(local_to_frame, ((0.0, 0.0), (side - 1.0, 0.0), (0.0, side - 1.0), (side - 1.0, side - 1.0)))
+        x0, y0 = (math.floor(v) - 2 for v in c.min(axis=0))
+        x1, y1 = (math.ceil(v) + 3 for v in c.max(axis=0))  # exclusive
+        if x0 >= 0 and y0 >= 0 and x1 <= w and y1 <= h:
+            ii = self._fov_sum
+            if int(ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]) == (x1 - x0) * (y1 - y0):
+                if self._fov_full is None or self._fov_full.shape[0] != side:
+                    self._fov_full = np.full((side, side), 255, np.uint8)
+                    self._fov_full.flags.writeable = False
+                return self._fov_full
+        return cv2.warpAffine(self._fov, local_to_frame[:2], (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def _features(self, view: _View, centre: np.ndarray, half: float, quality: float | None = None,
                   masked: bool = True) -> np.ndarray:
@@ -894,35 +918,44 @@ class FeatureTracker(Tracker):
             aff = _h(aff0)
         return aff, _similarity(aff, centre), inl, n_in
 
-    def _orb_prep(self, frame: np.ndarray, roi=None) -> tuple[np.ndarray, np.ndarray]:
+    def _orb_prep(self, bgr: np.ndarray, fov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gray for ORB (local contrast equalised with tiles of ~90 x 72 px, slightly smoothed:
         repeatable keypoints on low-contrast tissue) and the detection mask (field of view, no
-        highlights), of the whole frame or of ``roi`` = (x0, y0, x1, y1)."""
-        x0, y0, x1, y1 = roi if roi is not None else (0, 0, frame.shape[1], frame.shape[0])
-        bgr = frame[y0:y1, x0:x1]
+        highlights) of an image region ``bgr`` whose field-of-view mask is ``fov``."""
         gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if bgr.ndim == 3 else np.ascontiguousarray(bgr)
-        mask = self._fov[y0:y1, x0:x1].copy()
+        mask = fov.copy()
         if bgr.ndim == 3:
             mask[self._highlights(bgr, gray, mask)] = 0
-        grid = (max(1, round((x1 - x0) / 90)), max(1, round((y1 - y0) / 72)))
+        grid = (max(1, round(bgr.shape[1] / 90)), max(1, round(bgr.shape[0] / 72)))
         clahe = self._clahe.get(grid)
         if clahe is None:
             clahe = self._clahe[grid] = cv2.createCLAHE(clipLimit=2.0, tileGridSize=grid)
         return cv2.GaussianBlur(clahe.apply(gray), (0, 0), 1.0), mask
 
-    def _orb_describe(self, frame: np.ndarray, centre: np.ndarray):
-        """ORB keypoints (frame px) and descriptors within ``window`` px of ``centre``."""
+    def _orb_source(self, frame: np.ndarray, centre: np.ndarray) -> tuple:
+        """What :meth:`_orb_features` describes a keyframe with target at ``centre`` (px) from: a copy
+        of the frame's region within the window + 32 px of it (the frame may be a reused buffer),
+        its field-of-view mask, the region's origin (px) and the window (px)."""
         half = self._window + 32
         h, w = frame.shape[:2]
         x0, y0 = int(max(0, centre[0] - half)), int(max(0, centre[1] - half))
         x1, y1 = int(min(w, centre[0] + half + 1)), int(min(h, centre[1] + half + 1))
-        gray, mask = self._orb_prep(frame, (x0, y0, x1, y1))
-        kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
-        if desc is None or len(kps) < 4:
-            return None, None
-        pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
-        near = np.max(np.abs(pts - centre), axis=1) <= self._window
-        return pts[near], desc[near]
+        return frame[y0:y1, x0:x1].copy(), self._fov[y0:y1, x0:x1], (x0, y0), self._window
+
+    def _orb_features(self, kf: _Keyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """ORB keypoints (frame px) and descriptors of keyframe ``kf`` within its window of its
+        target, described on first use: only the whole-frame re-acquisition needs them, and only
+        of the anchor and the latest sharp keyframe (most keyframes are never searched for)."""
+        if kf.orb_src is not None:
+            bgr, fov, (x0, y0), window = kf.orb_src
+            kf.orb_src = None
+            gray, mask = self._orb_prep(bgr, fov)
+            kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
+            if desc is not None and len(kps) >= 4:
+                pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
+                near = np.max(np.abs(pts - kf.target), axis=1) <= window
+                kf.orb_pts, kf.orb_desc = pts[near], desc[near]
+        return kf.orb_pts, kf.orb_desc
 
     def _make_keyframe(self, frame: np.ndarray, view: _View, target: np.ndarray,
                        from_anchor: np.ndarray, pts: np.ndarray | None = None, sharp: bool = True) -> _Keyframe | None:
@@ -934,7 +967,7 @@ class FeatureTracker(Tracker):
             return None
         kf = _Keyframe(view, pts.astype(np.float32), np.array(target, float), from_anchor, sharp=sharp)
         if self.settings.reacquire and sharp:
-            kf.orb_pts, kf.orb_desc = self._orb_describe(frame, target)
+            kf.orb_src = self._orb_source(frame, target)
         self.stats["keyframes"] += 1
         return kf
 
@@ -1790,11 +1823,11 @@ class FeatureTracker(Tracker):
         # with enough descriptors (weak texture): the frame's ORB search would be wasted.
         sharp = [k for k in self._recent if k.sharp][-1:]  # the latest not made from a blurred view
         kfs = [k for k in [self._anchor, *sharp]
-               if k.orb_desc is not None and len(k.orb_desc) >= s.reacquire_min_inliers]
+               if (desc := self._orb_features(k)[1]) is not None and len(desc) >= s.reacquire_min_inliers]
         if not kfs:
             return None
         box = self._search_box()
-        gray, mask = self._orb_prep(frame, box)
+        gray, mask = self._orb_prep(frame[box[1]:box[3], box[0]:box[2]], self._fov[box[1]:box[3], box[0]:box[2]])
         kps, desc = self._orb.detectAndCompute(gray, mask)
         if desc is None or len(kps) < s.reacquire_min_inliers:
             return None
