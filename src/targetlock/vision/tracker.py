@@ -602,7 +602,7 @@ class _Keyframe:
     orb_pts: np.ndarray | None = None
     orb_desc: np.ndarray | None = None
     orb_src: tuple | None = None  # what orb_pts/orb_desc are described from on first use (see
-    # FeatureTracker._orb_features): (frame crop, its field-of-view mask, crop origin px, window px)
+    # FeatureTracker._orb_features): (frame crop, crop origin px)
     sharp: bool = True       # not made from a blurred view (used for whole-frame re-acquisition)
     by_chain: bool = False   # made from a frame the chain alone carried (no keyframe or dense match): it
     # holds the chain's own error and cannot correct it
@@ -934,26 +934,26 @@ class FeatureTracker(Tracker):
 
     def _orb_source(self, frame: np.ndarray, centre: np.ndarray) -> tuple:
         """What :meth:`_orb_features` describes a keyframe with target at ``centre`` (px) from: a copy
-        of the frame's region within the window + 32 px of it (the frame may be a reused buffer),
-        its field-of-view mask, the region's origin (px) and the window (px)."""
+        of the frame's region within the window + 32 px of it (the frame may be a reused buffer) and
+        the region's origin (px). The field of view and the window are the selection's, as then."""
         half = self._window + 32
         h, w = frame.shape[:2]
         x0, y0 = int(max(0, centre[0] - half)), int(max(0, centre[1] - half))
         x1, y1 = int(min(w, centre[0] + half + 1)), int(min(h, centre[1] + half + 1))
-        return frame[y0:y1, x0:x1].copy(), self._fov[y0:y1, x0:x1], (x0, y0), self._window
+        return frame[y0:y1, x0:x1].copy(), (x0, y0)
 
     def _orb_features(self, kf: _Keyframe) -> tuple[np.ndarray | None, np.ndarray | None]:
         """ORB keypoints (frame px) and descriptors of keyframe ``kf`` within its window of its
         target, described on first use: only the whole-frame re-acquisition needs them, and only
         of the anchor and the latest sharp keyframe (most keyframes are never searched for)."""
         if kf.orb_src is not None:
-            bgr, fov, (x0, y0), window = kf.orb_src
+            bgr, (x0, y0) = kf.orb_src
             kf.orb_src = None
-            gray, mask = self._orb_prep(bgr, fov)
+            gray, mask = self._orb_prep(bgr, self._fov[y0:y0 + bgr.shape[0], x0:x0 + bgr.shape[1]])
             kps, desc = self._orb_tpl.detectAndCompute(gray, mask)
             if desc is not None and len(kps) >= 4:
                 pts = np.array([k.pt for k in kps], np.float32) + [x0, y0]
-                near = np.max(np.abs(pts - kf.target), axis=1) <= window
+                near = np.max(np.abs(pts - kf.target), axis=1) <= self._window
                 kf.orb_pts, kf.orb_desc = pts[near], desc[near]
         return kf.orb_pts, kf.orb_desc
 
