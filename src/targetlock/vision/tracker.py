@@ -31,11 +31,14 @@ One interface, :class:`Tracker`: ``select(frame, point_px, window_px)`` chooses 
     Under strong sensor noise the selection counts only corners above the noise and the regions
     are smoothed before the flow.
     After ``max_misses`` consecutive rejected frames the target is **lost**; it is then (the
-    searches taking turns, about one per frame) re-acquired locally (keyframe flow), over the whole
+    searches taking turns, about one per frame) re-acquired locally (keyframe flow, the selection
+    keyframe first), over the whole
     frame (the field of view's bounding box) by a **dense search** of the
     keyframes' band-passed target windows (weak texture, where ORB finds no keypoints; glints
     filled and their halo left out, a candidate must lead every other place and be found again on
-    the next frame where the tissue around it went), or, every few frames, by ORB matching
+    the next frame where the tissue around it went; a best place that does not stand out seeds the
+    local keyframe re-lock instead, when near where the target was last seen), or, every few frames,
+    by ORB matching
     against the keyframes, verified with RANSAC and by the optical-flow keyframe check. In the normal case
     only a region of interest around the prediction is processed (a ~200 px square for an 80 px
     window).
@@ -522,6 +525,10 @@ class TrackerSettings:
                                          "dense_reacquire_lead but at least this much is accepted once it has been "
                                          "found again, where the tissue around it moved, on dense_streak_frames "
                                          "consecutive frames")
+    seeded_relock_px: float = param(120.0, unit="px", lo=0.0, hi=10000.0,
+                                    doc="while lost, the whole-frame dense search's best place, when within this "
+                                        "distance of where the target was last seen, seeds a local keyframe re-lock "
+                                        "(0: off)")
     dense_streak_frames: int = param(4, lo=2, hi=100, doc="see dense_streak_lead")
     dense_agree_px: float = param(8.0, unit="px", lo=0.0, hi=100.0,
                                   doc="a weak dense candidate (dense_streak_lead) of a later keyframe counts only "
@@ -647,7 +654,8 @@ class FeatureTracker(Tracker):
                       "inconsistent": 0, "outside": 0, "corrections": 0, "covered": 0, "dense": 0,
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
                       "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
-                      "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0}
+                      "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0,
+                      "seeded_relocks": 0}
         self._chain_only = 0
         self._verified_misses = False  # every miss since the last accepted frame was reported (see _update)
         self._lost_frames = 0
@@ -657,6 +665,7 @@ class FeatureTracker(Tracker):
         self._coasted: TrackResult | None = None  # a rejected frame's chain-only report (see _track)
         self._dense_tpl: list | None = None  # dense re-acquisition templates of the current loss
         self._cand: tuple | None = None      # dense candidate awaiting confirmation on the next frame
+        self._dense_seed: np.ndarray | None = None  # the last dense search's best place (px), standing out or not
         self._fov_half: np.ndarray | None = None
         self._fov_half_inner: np.ndarray | None = None  # _band_inner of _fov_half
         self._smooth = 0.0  # Gaussian sigma (px) the regions' gray is smoothed with (noisy sensor)
@@ -1104,14 +1113,18 @@ class FeatureTracker(Tracker):
         return (abs(math.log(sc)) < math.log1p(frac * self.settings.keyframe_scale) and
                 abs(math.degrees(ang)) < frac * self.settings.keyframe_rotation_deg)
 
-    def _keyframe_candidates(self, anchor_to_pred: np.ndarray) -> list[tuple[_Keyframe, int]]:
+    def _keyframe_candidates(self, anchor_to_pred: np.ndarray, relock: bool = False) -> list[tuple[_Keyframe, int]]:
         """(keyframe, fewest inliers to accept it) to try in order: every few frames the anchor
         (if the view is back close to it: no accumulated error), then the current keyframe, then
-        the most recent other keyframe close to the predicted view."""
+        the most recent other keyframe close to the predicted view. While lost (``relock``) the
+        anchor comes first on every attempt, on the re-lock's own evidence (1.5 ``min_inliers``):
+        the later keyframes may hold what made the target lost (seed 0's coffee `occlusion`: made as
+        the instrument came near, 1-6 of their 22-24 corners matched when the target came back, the
+        selection's 13 of 20, within 0.5 px)."""
         out = []
-        if self._key is not self._anchor and self.stats["frames"] % 5 == 0 and \
+        if self._key is not self._anchor and (relock or self.stats["frames"] % 5 == 0) and \
                 self._close(self._anchor, anchor_to_pred, 0.5):
-            out.append((self._anchor, 2 * self.settings.min_inliers))
+            out.append((self._anchor, 0 if relock else 2 * self.settings.min_inliers))
         out.append((self._key, 0))
         for kf in reversed(self._recent):
             if kf is not self._key and self._close(kf, anchor_to_pred, 0.7):
@@ -1407,7 +1420,21 @@ class FeatureTracker(Tracker):
                 res = self._reacquire(frame_bgr)
             if res is None and dense:
                 self.stats["dense_searches"] += 1
+                self._dense_seed = None
                 res = self._reacquire_dense(frame_bgr)
+                # A target that moved while it was lost (covered, blurred) is rarely within the optical
+                # flow's reach of where it was last seen (seed 0's coffee `occlusion`: 25 px, and the
+                # local re-lock there never found it). The dense search's best place, even one that
+                # does not stand out enough to be accepted on its own, seeds the local re-lock, which
+                # still needs a keyframe's corners around it and the target's own patch. Nearer than
+                # 8 px the local re-lock at the last position tries the same. Not at the edge of the view,
+                # where the lens distortion bends a keyframe made nearer the centre (seed 6's `leave` at
+                # 160 px: re-locked 6.7 px off, 8.3 px a few frames later); the target is found further in.
+                seed = self._dense_seed
+                if res is None and seed is not None and 8.0 < np.hypot(*(seed - self._pos)) <= s.seeded_relock_px \
+                        and self._in_view(seed, inner=True):
+                    self.stats["seeded_relocks"] += 1
+                    res = self._track(frame_bgr, relock=True, seed=seed)
             if res is not None:
                 self._dense_tpl = self._cand = None
             if res is None:
@@ -1444,12 +1471,14 @@ class FeatureTracker(Tracker):
             return TrackResult(np.full(2, np.nan), 0.0, False, True)
         return coasted or TrackResult(self._pos.copy(), 0.0, False, False)
 
-    def _track(self, frame: np.ndarray, relock: bool) -> TrackResult | None:
+    def _track(self, frame: np.ndarray, relock: bool, seed: np.ndarray | None = None) -> TrackResult | None:
         """One step from the last accepted frame; None if this frame is rejected. ``relock``: the
-        target is lost and this is a cheap local attempt (keyframe evidence required)."""
+        target is lost and this is a cheap local attempt (keyframe evidence required), around
+        ``seed`` (px) if given, else where it was last seen."""
         s = self.settings
         steps = self._steps + self._gap  # frame intervals since the last accepted frame
-        pred = self._pos + self._vel * steps  # velocity in px per typical frame interval
+        # velocity in px per typical frame interval; a re-lock may be seeded elsewhere (px)
+        pred = self._pos + self._vel * steps if seed is None else np.asarray(seed, float)
         tried_shift = False
         if not relock and not self._vel_known:
             # No velocity yet (just selected or re-acquired): predict by phase correlation.
@@ -1478,7 +1507,7 @@ class FeatureTracker(Tracker):
         # 2) keyframe -> this frame, predicted through the chain
         key = None
         current = None  # (key_to_pred, warped region) of the current keyframe, for the dense fallback
-        for kf, least in self._keyframe_candidates(anchor_to_pred):
+        for kf, least in self._keyframe_candidates(anchor_to_pred, relock):
             key_to_pred = anchor_to_pred @ _inv(kf.from_anchor)
             km, ksrc, kdst, wv = self._match_keyframe(view, kf, key_to_pred)
             if kf is self._key:
@@ -1978,7 +2007,8 @@ class FeatureTracker(Tracker):
         correlation >= ``dense_reacquire_ncc`` and ``dense_streak_lead`` times that of any other
         place (strong: ``dense_reacquire_lead`` times). Glints are filled smoothly before
         band-passing, so a glint (which stays put in the image while the tissue moves) cannot be
-        matched."""
+        matched. The best place found, standing out or not, is left in ``_dense_seed`` (half
+        resolution, else quarter: the finest searched) for a seeded local re-lock (see _update)."""
         s = self.settings
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
@@ -2015,6 +2045,7 @@ class FeatureTracker(Tracker):
             return None
         img, fov, origin = self._dense_image(frame)
         tpls = self._dense_tpl
+        seed = None  # (place px, correlation) of the best peak at the finest resolution searched
         if s.dense_presearch:
             # Pre-search at quarter resolution (a third of a template's cost): a template that
             # stands out nowhere there is not searched at half resolution, whose search alone
@@ -2033,7 +2064,9 @@ class FeatureTracker(Tracker):
                 hq = t[3].shape[0] // 2
                 score_q = spec_q.match(t[3])
                 score_q[self._fov_quarter[hq:hq + score_q.shape[0], hq:hq + score_q.shape[1]] == 0] = -1.0
-                _, top_q, second_q = _peaks(score_q, max(2, hq // 2))
+                loc_q, top_q, second_q = _peaks(score_q, max(2, hq // 2))
+                if seed is None or top_q > seed[1]:
+                    seed = (4.0 * np.array([loc_q[0] + hq, loc_q[1] + hq], float) + 1.5 + origin, top_q)
                 if top_q >= s.dense_presearch_ncc and top_q >= s.dense_presearch_lead * second_q:
                     keep.append(t)
                 else:
@@ -2048,6 +2081,9 @@ class FeatureTracker(Tracker):
             loc, top, second = _peaks(score, max(3, half // 2))
             peaks.append((2.0 * np.array([loc[0] + half, loc[1] + half], float) + 0.5 + origin, kf, top, second, full,
                           view_sim))
+        if peaks:
+            seed = max(((p[0], p[2]) for p in peaks), key=lambda q: q[1])
+        self._dense_seed = None if seed is None else seed[0]
         at_anchor = [p for p, kf, *_ in peaks if kf is self._anchor]
         best = None
         for p, kf, top, second, full, view_sim in peaks:
