@@ -525,6 +525,8 @@ class TrackerSettings:
                                          "dense_reacquire_lead but at least this much is accepted once it has been "
                                          "found again, where the tissue around it moved, on dense_streak_frames "
                                          "consecutive frames")
+    phase_dense: bool = param(True, doc="when no corner follows but the region's phase correlation moved the "
+                                        "prediction, a dense keyframe match that agrees with it carries the frame")
     seeded_relock_px: float = param(120.0, unit="px", lo=0.0, hi=10000.0,
                                     doc="while lost, the whole-frame dense search's best place, when within this "
                                         "distance of where the target was last seen, seeds a local keyframe re-lock "
@@ -655,7 +657,7 @@ class FeatureTracker(Tracker):
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
                       "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
                       "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0,
-                      "seeded_relocks": 0}
+                      "seeded_relocks": 0, "phase_dense": 0}
         self._chain_only = 0
         self._verified_misses = False  # every miss since the last accepted frame was reported (see _update)
         self._lost_frames = 0
@@ -1480,12 +1482,13 @@ class FeatureTracker(Tracker):
         # velocity in px per typical frame interval; a re-lock may be seeded elsewhere (px)
         pred = self._pos + self._vel * steps if seed is None else np.asarray(seed, float)
         tried_shift = False
+        phased = None  # the target's place by this frame's phase-correlation shift, when no velocity is known (px)
         if not relock and not self._vel_known:
             # No velocity yet (just selected or re-acquired): predict by phase correlation.
             shift = self._coarse_shift(frame)
             tried_shift = True
             if shift is not None:
-                pred = self._pos + shift
+                pred = phased = self._pos + shift
         view = self._crop(frame, pred)
         # 1) chain: last accepted frame -> this frame
         src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + (pred - self._pos), s.lk_levels)
@@ -1521,6 +1524,23 @@ class FeatureTracker(Tracker):
             key = None  # a keyframe alone, on a few features only: not trusted
         dense = None
         disputed = False  # a dense match disagreed with the chain (on the retry)
+        if key is None and chain is None and phased is not None and not relock and s.phase_dense:
+            # Just selected or re-acquired (no velocity yet) and no corner followed (fast motion blurred
+            # them all: seed 4's coffee `fast`, 17 px per frame, lost from the first frame), but the
+            # region's phase correlation measured its motion: the keyframe's window aligned densely
+            # there, agreeing with it, stands in for the chain. Not once a velocity is known: then
+            # the phase correlation follows whatever moves most, and an instrument crossing the target
+            # or the view's edge agreed with a dense match (false locks on 5 of 9 seeds' `occlusion`
+            # and `leave` sequences).
+            pview = view if np.hypot(*(pred - phased)) < 1e-9 else self._crop(frame, phased)
+            key_to_ph = _translation(phased - self._pos) @ self._from_anchor @ _inv(self._key.from_anchor)
+            wv = self._match_keyframe(pview, self._key, key_to_ph)[3]
+            dense = self._match_ecc(self._key, key_to_ph, wv) or self._match_dense(self._key, key_to_ph, wv)
+            if dense is not None and np.hypot(*(_apply(dense[0], self._key.target) - phased)) <= s.consistency_px:
+                est_chain, pred, view = phased, phased, pview
+                self.stats["phase_dense"] += 1
+            else:
+                dense = None
         if key is None and current is not None and chain is not None and not relock and not suspect:
             # ECC first; the band-passed correlation when ECC finds nothing (it leaves the glints'
             # halo out, which on weak texture can outweigh the tissue). An ECC match that
@@ -1597,7 +1617,7 @@ class FeatureTracker(Tracker):
             self.stats["dense"] += 1
             conf = 0.5 * rho
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
-            next_pts = dst[chain[2]]
+            next_pts = dst[chain[2]] if chain is not None else self._features(view, est, 0.5 * self._window)
         elif (chain is not None and not suspect and not relock and self._chain_only < 3 and chain[3] >= 2 * s.min_inliers
               and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
