@@ -279,3 +279,19 @@ def test_fast_motion_that_blurs_every_corner_is_carried_by_the_phase_correlation
     assert np.sum(errs < 4.0) >= 15, errs.round(1)                    # most frames tracked
     old, _ = _run(FeatureTracker(TrackerSettings(phase_dense=False)), frames)
     assert not np.any(np.isfinite(old)), old.round(1)                 # lost from the first frame before
+
+
+def test_a_chain_alone_that_jumps_away_from_the_targets_motion_is_not_believed():
+    """`vision-eval`'s `occlusion` sequence on the fundus photograph, seed 8, first 30 frames: on frame 21
+    the instrument's round tip reaches the target; its patch decorrelates (0.05), but the selection
+    keyframe's corners around it still follow, so the frame is accepted and tops its corners up with new
+    ones, some on the instrument's outline. On frame 22 the keyframe no longer matched and the chain
+    alone, following those corners, jumped 24 px with the instrument while the target drifted 0.5 px per
+    frame: reported 24, 47 and 68 px off. A chain alone must stay near the target's motion: never at a
+    wrong place."""
+    target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
+    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=8, target=target)[:30]
+    errs, _ = _run(FeatureTracker(), frames)
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)     # never a wrong position
+    old, _ = _run(FeatureTracker(TrackerSettings(chain_only_jump_px=1000.0)), frames)
+    assert np.sum(old[np.isfinite(old)] > 8.0) >= 2, old.round(1)      # the false lock before

@@ -527,6 +527,9 @@ class TrackerSettings:
                                          "consecutive frames")
     phase_dense: bool = param(True, doc="when no corner follows but the region's phase correlation moved the "
                                         "prediction, a dense keyframe match that agrees with it carries the frame")
+    chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
+                                      doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
+                                          "far from the constant-velocity prediction, per frame interval")
     seeded_relock_px: float = param(120.0, unit="px", lo=0.0, hi=10000.0,
                                     doc="while lost, the whole-frame dense search's best place, when within this "
                                         "distance of where the target was last seen, seeds a local keyframe re-lock "
@@ -1481,6 +1484,7 @@ class FeatureTracker(Tracker):
         steps = self._steps + self._gap  # frame intervals since the last accepted frame
         # velocity in px per typical frame interval; a re-lock may be seeded elsewhere (px)
         pred = self._pos + self._vel * steps if seed is None else np.asarray(seed, float)
+        moving = pred.copy()  # where the target's own motion puts it (pred may follow a coarse shift below)
         tried_shift = False
         phased = None  # the target's place by this frame's phase-correlation shift, when no velocity is known (px)
         if not relock and not self._vel_known:
@@ -1619,7 +1623,14 @@ class FeatureTracker(Tracker):
             new_from_anchor = _similarity(aff, kf.target) @ kf.from_anchor
             next_pts = dst[chain[2]] if chain is not None else self._features(view, est, 0.5 * self._window)
         elif (chain is not None and not suspect and not relock and self._chain_only < 3 and chain[3] >= 2 * s.min_inliers
-              and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))):
+              and (self._misses == 0 or disputed or (self._verified_misses and s.chain_after_reported))
+              # Only near the motion the target had: a chain alone that suddenly jumps follows something
+              # else (seed 8's retina `occlusion`: corners re-detected on an instrument's outline as it
+              # reached the target, then a 24 px jump with it while the target drifted 0.5 px per frame,
+              # and 47 and 68 px off on the next frames; on seeds 0, 1 and 8 every other frame carried by
+              # the chain alone was within 6 px of the prediction). The region's phase correlation that
+              # seeds a second attempt follows whatever moves most, the instrument too: not the reference.
+              and (not self._vel_known or np.hypot(*(est_chain - moving)) <= s.chain_only_jump_px * steps)):
             aff, sim, inl, n_in = chain  # keyframe unmatched: a few frames on the chain alone
             est = est_chain
             conf = 0.5 * min(1.0, n_in / max(len(self._prev_pts), 1) / 0.8)
