@@ -530,6 +530,10 @@ class TrackerSettings:
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
+    local_seed_px: float = param(50.0, unit="px", lo=0.0, hi=1000.0,
+                                 doc="while lost, the local keyframe re-lock is also tried where the selection's "
+                                     "band-passed window correlates best within this distance of the last position "
+                                     "(0: off; further is the whole-frame searches' job)")
     seeded_relock_px: float = param(120.0, unit="px", lo=0.0, hi=10000.0,
                                     doc="while lost, the whole-frame dense search's best place, when within this "
                                         "distance of where the target was last seen, seeds a local keyframe re-lock "
@@ -1420,6 +1424,14 @@ class FeatureTracker(Tracker):
             if k <= 2 or k % 4 == 0:
                 self.stats["local_searches"] += 1
                 res = self._track(frame_bgr, relock=True)
+                if res is None and s.local_seed_px > 0:
+                    # The same, seeded where the selection's band-passed window correlates best around
+                    # the last position (no uniqueness asked: a seed only; the whole-frame dense search
+                    # skips windows that match their own surroundings or have little texture).
+                    seed = self._local_seed(frame_bgr)
+                    if seed is not None and np.hypot(*(seed - self._pos)) > 8.0 and self._in_view(seed, inner=True):
+                        self.stats["seeded_relocks"] += 1
+                        res = self._track(frame_bgr, relock=True, seed=seed)
             if res is None and s.reacquire and k > 1 and k % s.reacquire_every == 1 % s.reacquire_every:
                 self.stats["orb_searches"] += 1
                 res = self._reacquire(frame_bgr)
@@ -1957,13 +1969,15 @@ class FeatureTracker(Tracker):
             kf.band = _band(kf.view.gray, *self._BAND_FULL), self._band_valid(kf.view.fov, kf.view.sat, 1.0)
         return kf.band
 
-    def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray) -> tuple[np.ndarray, float] | None:
+    def _dense_template(self, kf: _Keyframe, scale: float, from_anchor: np.ndarray,
+                        valid: np.ndarray | None = None) -> tuple[np.ndarray, float] | None:
         """Band-passed target window of keyframe ``kf`` (side = window; a large one's centre, see select),
         resampled at ``scale`` (1 or 0.5) to the scale and rotation of the view ``from_anchor`` (anchor ->
         that view); highlights and what lies outside the field of view are zero (neutral for the
         correlation). Returns (template, its texture energy per valid pixel) or None when too little of
-        it is usable."""
-        bp, valid = self._kf_band(kf)
+        it is usable. ``valid``: another usable mask of the keyframe's region (uint8, 255: usable)."""
+        bp, usable = self._kf_band(kf)
+        valid = usable if valid is None else valid
         rel = from_anchor @ _inv(kf.from_anchor)   # keyframe -> that view
         lin_inv = np.linalg.inv(_similarity(rel, kf.target)[:2, :2]) / scale
         half = int(round(0.5 * min(self._window, self._tpl_side) * scale))  # a large window: its centre (select)
@@ -2209,6 +2223,27 @@ class FeatureTracker(Tracker):
         if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
             self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy(), streak, strong
         return None
+
+    def _local_seed(self, frame: np.ndarray) -> np.ndarray | None:
+        """Where (px) the selection keyframe's band-passed target window, at the view's last scale and
+        rotation, correlates best within ``local_seed_px`` of the last position (and the region around
+        it), if at least ``dense_reacquire_ncc``."""
+        # Highlights left out with only a few px of their halo: a window strewn with small glints
+        # (seed 5's mucosa `occlusion`) keeps nothing beyond the whole halo, and this is only a seed.
+        kv, near = self._anchor.view, np.ones((5, 5), np.uint8)
+        valid = cv2.bitwise_and(kv.fov, cv2.bitwise_not(cv2.dilate(kv.sat.view(np.uint8), near) * 255))
+        made = self._dense_template(self._anchor, 1.0, self._from_anchor, valid)
+        if made is None:
+            return None
+        tpl = made[0]
+        view = self._crop(frame, self._pos)
+        img = _band(view.gray, *self._BAND_FULL)
+        img[(view.fov == 0) | (cv2.dilate(view.sat.view(np.uint8), near) > 0)] = 0.0
+        r = min((min(img.shape) - tpl.shape[0]) // 2 - 1, int(self.settings.local_seed_px))
+        found = _match_around(img, tpl, self._pos - view.to_frame[:2, 2], r) if r > 0 else None
+        if found is None or found[1] < self.settings.dense_reacquire_ncc:
+            return None
+        return found[0] + view.to_frame[:2, 2]
 
     def _set_from_anchor(self, from_anchor: np.ndarray, est: np.ndarray) -> None:
         """Accept ``from_anchor`` (anchor -> this frame) for the target at ``est`` (px); also as the
