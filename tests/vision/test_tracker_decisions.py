@@ -23,6 +23,19 @@ def _run(tracker, frames, window=WINDOW):
     return np.array(errs), res
 
 
+def _assert_found_again_after_the_instrument(target, seed, least, without):
+    """`occlusion` (instrument over the target until frame 44) on ``target``: never at a wrong place,
+    tracked within 4 px on at least ``least`` frames after it is back in view, and never found again
+    with the tracker settings ``without`` (the rule off)."""
+    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=seed, target=target)
+    back = np.array([f.visible for f in frames[1:]]) & (np.arange(1, len(frames)) >= 45)
+    errs, _ = _run(FeatureTracker(), frames)
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)      # never a wrong position
+    assert np.sum(errs[back] < 4.0) >= least, errs[back].round(1)      # found again after the instrument
+    old, _ = _run(FeatureTracker(without), frames)
+    assert not np.any(np.isfinite(old[back])), old[back].round(1)      # lost for good before
+
+
 @pytest.fixture(scope="module")
 def retina_lighting():
     """`vision-eval`'s `lighting` sequence on the fundus photograph, seed 0, first 40 frames: the light's
@@ -244,13 +257,7 @@ def test_a_target_that_moved_while_covered_is_relocked_where_the_dense_search_fi
     not leading enough to be accepted on its own) now seeds the local re-lock, which still needs the
     selection keyframe's corners around it: the target is found again, never at a wrong place."""
     target = PlanarTarget((0.2, 0.2), photo_texture("coffee"), (0.0, 0.0))
-    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=0, target=target)
-    back = np.array([f.visible for f in frames[1:]]) & (np.arange(1, len(frames)) >= 45)
-    errs, _ = _run(FeatureTracker(), frames)
-    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)      # never a wrong position
-    assert np.sum(errs[back] < 4.0) >= 4, errs[back].round(1)          # found again after the instrument
-    old, _ = _run(FeatureTracker(TrackerSettings(seeded_relock_px=0.0)), frames)
-    assert not np.any(np.isfinite(old[back])), old[back].round(1)      # lost for good before
+    _assert_found_again_after_the_instrument(target, 0, 4, TrackerSettings(seeded_relock_px=0.0))
 
 
 def test_a_target_coming_back_at_the_edge_of_the_view_is_not_relocked_there_from_a_seed():
@@ -305,10 +312,4 @@ def test_a_target_strewn_with_glints_is_relocked_where_its_window_correlates_aro
     (glints left out with a few px of halo) correlates best around the last position: found again,
     never at a wrong place."""
     target = PlanarTarget.mucosa(seed=5, texture_px=RenderSettings().texture_px)
-    frames = render_sequence("occlusion", EvalSettings(photos=()), seed=5, target=target)
-    back = np.array([f.visible for f in frames[1:]]) & (np.arange(1, len(frames)) >= 45)
-    errs, _ = _run(FeatureTracker(), frames)
-    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)      # never a wrong position
-    assert np.sum(errs[back] < 4.0) >= 12, errs[back].round(1)         # found again after the instrument
-    old, _ = _run(FeatureTracker(TrackerSettings(local_seed_px=0.0)), frames)
-    assert not np.any(np.isfinite(old[back])), old[back].round(1)      # lost for good before
+    _assert_found_again_after_the_instrument(target, 5, 12, TrackerSettings(local_seed_px=0.0))
