@@ -525,8 +525,9 @@ class TrackerSettings:
                                          "dense_reacquire_lead but at least this much is accepted once it has been "
                                          "found again, where the tissue around it moved, on dense_streak_frames "
                                          "consecutive frames")
-    phase_dense: bool = param(True, doc="when no corner follows but the region's phase correlation moved the "
-                                        "prediction, a dense keyframe match that agrees with it carries the frame")
+    phase_dense: bool = param(True, doc="just selected or re-acquired and no corner follows: a dense keyframe match "
+                                        "placed by the region's phase correlation and agreeing with it carries the "
+                                        "frame")
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
@@ -1428,10 +1429,7 @@ class FeatureTracker(Tracker):
                     # The same, seeded where the selection's band-passed window correlates best around
                     # the last position (no uniqueness asked: a seed only; the whole-frame dense search
                     # skips windows that match their own surroundings or have little texture).
-                    seed = self._local_seed(frame_bgr)
-                    if seed is not None and np.hypot(*(seed - self._pos)) > 8.0 and self._in_view(seed, inner=True):
-                        self.stats["seeded_relocks"] += 1
-                        res = self._track(frame_bgr, relock=True, seed=seed)
+                    res = self._seeded_relock(frame_bgr, self._local_seed(frame_bgr), s.local_seed_px)
             if res is None and s.reacquire and k > 1 and k % s.reacquire_every == 1 % s.reacquire_every:
                 self.stats["orb_searches"] += 1
                 res = self._reacquire(frame_bgr)
@@ -1443,15 +1441,9 @@ class FeatureTracker(Tracker):
                 # flow's reach of where it was last seen (seed 0's coffee `occlusion`: 25 px, and the
                 # local re-lock there never found it). The dense search's best place, even one that
                 # does not stand out enough to be accepted on its own, seeds the local re-lock, which
-                # still needs a keyframe's corners around it and the target's own patch. Nearer than
-                # 8 px the local re-lock at the last position tries the same. Not at the edge of the view,
-                # where the lens distortion bends a keyframe made nearer the centre (seed 6's `leave` at
-                # 160 px: re-locked 6.7 px off, 8.3 px a few frames later); the target is found further in.
-                seed = self._dense_seed
-                if res is None and seed is not None and 8.0 < np.hypot(*(seed - self._pos)) <= s.seeded_relock_px \
-                        and self._in_view(seed, inner=True):
-                    self.stats["seeded_relocks"] += 1
-                    res = self._track(frame_bgr, relock=True, seed=seed)
+                # still needs a keyframe's corners around it and the target's own patch.
+                if res is None:
+                    res = self._seeded_relock(frame_bgr, self._dense_seed, s.seeded_relock_px)
             if res is not None:
                 self._dense_tpl = self._cand = None
             if res is None:
@@ -2223,6 +2215,17 @@ class FeatureTracker(Tracker):
         if half <= c[0] < img.shape[1] - half and half <= c[1] < img.shape[0] - half:
             self._cand = p, img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1].copy(), streak, strong
         return None
+
+    def _seeded_relock(self, frame: np.ndarray, seed: np.ndarray | None, reach: float) -> TrackResult | None:
+        """The local keyframe re-lock around ``seed`` (px), if it lies within ``reach`` px of where the
+        target was last seen but more than 8 px away (nearer, the re-lock at the last position tries the
+        same), and a quarter window inside the view: at its edge the lens distortion bends a keyframe
+        made nearer the centre (seed 6's `leave` at 160 px: re-locked 6.7 px off, 8.3 px a few frames
+        later); the target is found further in."""
+        if seed is None or not 8.0 < np.hypot(*(seed - self._pos)) <= reach or not self._in_view(seed, inner=True):
+            return None
+        self.stats["seeded_relocks"] += 1
+        return self._track(frame, relock=True, seed=seed)
 
     def _local_seed(self, frame: np.ndarray) -> np.ndarray | None:
         """Where (px) the selection keyframe's band-passed target window, at the view's last scale and
