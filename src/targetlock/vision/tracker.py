@@ -1435,7 +1435,6 @@ class FeatureTracker(Tracker):
                 res = self._reacquire(frame_bgr)
             if res is None and dense:
                 self.stats["dense_searches"] += 1
-                self._dense_seed = None
                 res = self._reacquire_dense(frame_bgr)
                 # A target that moved while it was lost (covered, blurred) is rarely within the optical
                 # flow's reach of where it was last seen (seed 0's coffee `occlusion`: 25 px, and the
@@ -1542,7 +1541,7 @@ class FeatureTracker(Tracker):
             # and `leave` sequences).
             pview = view if np.hypot(*(pred - phased)) < 1e-9 else self._crop(frame, phased)
             key_to_ph = _translation(phased - self._pos) @ self._from_anchor @ _inv(self._key.from_anchor)
-            wv = self._match_keyframe(pview, self._key, key_to_ph)[3]
+            wv = self._warp(pview, key_to_ph @ self._key.view.to_frame)
             dense = self._match_ecc(self._key, key_to_ph, wv) or self._match_dense(self._key, key_to_ph, wv)
             if dense is not None and np.hypot(*(_apply(dense[0], self._key.target) - phased)) <= s.consistency_px:
                 est_chain, pred, view = phased, phased, pview
@@ -2047,6 +2046,7 @@ class FeatureTracker(Tracker):
         matched. The best place found, standing out or not, is left in ``_dense_seed`` (half
         resolution, else quarter: the finest searched) for a seeded local re-lock (see _update)."""
         s = self.settings
+        self._dense_seed = None
         if self._dense_tpl is None:
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
@@ -2233,15 +2233,16 @@ class FeatureTracker(Tracker):
         it), if at least ``dense_reacquire_ncc``."""
         # Highlights left out with only a few px of their halo: a window strewn with small glints
         # (seed 5's mucosa `occlusion`) keeps nothing beyond the whole halo, and this is only a seed.
-        kv, near = self._anchor.view, np.ones((5, 5), np.uint8)
-        valid = cv2.bitwise_and(kv.fov, cv2.bitwise_not(cv2.dilate(kv.sat.view(np.uint8), near) * 255))
-        made = self._dense_template(self._anchor, 1.0, self._from_anchor, valid)
+        def usable(v: _View) -> np.ndarray:  # uint8, 255: in view and 2 px clear of highlights
+            return cv2.bitwise_and(v.fov, cv2.bitwise_not(cv2.dilate(v.sat.view(np.uint8), np.ones((5, 5), np.uint8)) * 255))
+
+        made = self._dense_template(self._anchor, 1.0, self._from_anchor, usable(self._anchor.view))
         if made is None:
             return None
         tpl = made[0]
         view = self._crop(frame, self._pos)
         img = _band(view.gray, *self._BAND_FULL)
-        img[(view.fov == 0) | (cv2.dilate(view.sat.view(np.uint8), near) > 0)] = 0.0
+        img[usable(view) == 0] = 0.0
         r = min((min(img.shape) - tpl.shape[0]) // 2 - 1, int(self.settings.local_seed_px))
         found = _match_around(img, tpl, self._pos - view.to_frame[:2, 2], r) if r > 0 else None
         if found is None or found[1] < self.settings.dense_reacquire_ncc:
