@@ -425,6 +425,11 @@ class TrackerSettings:
                                    doc="a window this large or larger, as asked for (select()'s window_px), is large: "
                                        "its features are kept highlight_clearance_px clear of highlights and its "
                                        "dense re-acquisition templates are its central dense_template_max_px")
+    context_isotropy: float = param(0.0, lo=0.0, hi=1.0,
+                                    doc="a window smaller than large_window_px whose texture isotropy (see "
+                                        "edge_isotropy) is below this is widened 1.5x, else 2x, for more context around "
+                                        "the target: the first that reaches it, else the most isotropic; 0: never "
+                                        "(default: 0.15 tracks more but slides along plain rims, see docs/vision.md)")
     highlight_clearance_px: int = param(5, unit="px", lo=0, hi=50,
                                         doc="in a large window (large_window_px), a feature is neither detected nor "
                                             "followed within this distance of a highlight (the reach of the "
@@ -1039,6 +1044,12 @@ class FeatureTracker(Tracker):
                 found = (window, quality, masked, view, pts, n_strong)
             if found is not None and found[5] >= margin:
                 break
+        if found is not None and s.context_isotropy > 0.0 and window_px < s.large_window_px:
+            before = found[0]
+            found, isotropy = self._with_context(frame_bgr, p, float(window_px), found)
+            context = found[0] > before
+        else:
+            isotropy, context = None, False
         if found is not None:
             window, quality, masked, view, pts, _ = found
             if window != self._window:
@@ -1060,7 +1071,12 @@ class FeatureTracker(Tracker):
             # - The dense re-acquisition looks for the target's surroundings, not the window's periphery,
             #   where e.g. an instrument coming over the target already showed in the last keyframe (seed
             #   0's mucosa `occlusion` at 160 px: the search found its edge and re-locked 184 px off).
-            large = window_px >= s.large_window_px
+            # - A window widened for context (context_isotropy) is large too: it has corners enough, and on
+            #   the plain surface it was widened for, the glints' rims are the corners nearest the target
+            #   (seeds 0-8 without it: false locks on 0.9 % of the frames, 2.6 times as many as with it, up to
+            #   78 % of seed 5's coffee `blur`, trailing the target by 11-20 px; with the whole window, not
+            #   its centre, as the dense template: seed 5's doubled).
+            large = window_px >= s.large_window_px or context
             self._tpl_side = s.dense_template_max_px if large else math.inf
             if large and masked and s.highlight_clearance_px > 0:
                 self._clear = True
@@ -1081,7 +1097,7 @@ class FeatureTracker(Tracker):
                     self._smooth = 0.0
             kf = self._make_keyframe(frame_bgr, view, p, np.eye(3), pts)
             self.selection = {"window_px": self._window, "quality": quality or s.feature_quality,
-                              "highlights_masked": masked, "features": len(pts)}
+                              "highlights_masked": masked, "features": len(pts), "isotropy": isotropy}
         else:
             sat = float(view.sat.mean())
             why = (f"{sat:.0%} of the region is saturated or glare" if sat > 0.3 else
@@ -1096,6 +1112,40 @@ class FeatureTracker(Tracker):
         self._prev_pts = kf.pts.copy()  # ... and the features to follow from it
         self.lost = False
         return True
+
+    def _with_context(self, frame_bgr: np.ndarray, p: np.ndarray, window_px: float, found: tuple) -> tuple[tuple, float]:
+        """The selection window ``found`` (window, quality, masked, view, corners, strong corners), or a
+        1.5x or 2x larger one around ``p`` (px) when its texture is edge-like or flat: isotropy below
+        ``context_isotropy``. A point on a smooth rim, a cup's plain glaze or a dark band is located by its
+        80 px window along one direction only, and motion blur along it leaves nothing to follow (seeds 0-8:
+        the 41 photograph windows of 80 px with isotropy below 0.1 were tracked on 75 % of their frames, 90 %
+        when selected at 160 px, and half of the frames the photographs lost were theirs); the surroundings
+        hold corners in other directions. The first larger window that reaches the isotropy is taken, else the most isotropic;
+        each needs ``min_inliers`` corners at the same quality and masking. Returns the window and its isotropy."""
+        s = self.settings
+        window, quality, masked = found[:3]
+        if self._window != window:
+            self._setup_window(frame_bgr, window)
+        best, best_iso = found, self._window_isotropy(found[3], p, found[4])
+        for grow in (1.5, 2.0):
+            if best_iso >= s.context_isotropy:
+                break
+            w = min(2048.0, grow * window_px)
+            if w <= window:
+                continue
+            self._setup_window(frame_bgr, w)
+            view = self._crop(frame_bgr, p)
+            pts, n_strong = self._corners(view, p, 0.5 * w, quality, masked)
+            if len(pts) < s.min_inliers:
+                continue
+            iso = self._window_isotropy(view, p, pts)
+            if iso > best_iso:
+                best, best_iso = (w, quality, masked, view, pts, n_strong), iso
+        return best, best_iso
+
+    def _window_isotropy(self, view: _View, p: np.ndarray, pts: np.ndarray) -> float:
+        """Isotropy (:meth:`_isotropies`) of the current window's texture around ``p`` (px) in ``view``."""
+        return self._isotropies(view, p, _Keyframe(view, pts, p, np.eye(3)), np.eye(3))[0]
 
     def _setup_window(self, frame_bgr: np.ndarray, window_px: float) -> None:
         s = self.settings
