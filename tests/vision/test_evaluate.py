@@ -101,3 +101,28 @@ def test_real_photograph_sequences_with_reference_trackers_in_the_same_run():
     assert sum(ln.startswith("| retina/slow |") for ln in lines) == 1
     assert sum(ln.startswith("| retina | ") for ln in lines) == 3          # ours, MIL, plain LK
     assert "of 2 sequences (seed 0)" in md
+
+
+def test_the_trackers_settings_are_part_of_the_evaluation(tmp_path, capsys):
+    """`vision-eval --set feature.FIELD=VALUE` reaches the feature tracker, the run folder's config
+    records it (a result can be reproduced from its folder alone), and a bad value names the field
+    and its range."""
+    import tomllib
+
+    from targetlock.cli import main
+    from targetlock.vision import TrackerSettings
+    argv = ["vision-eval", "--sequences", "slow", "--frames", "12", "--set", "photos=[]", "--set", "references=[]",
+            "--json", "-q"]
+    assert main([*argv, "--set", "feature.min_inliers=500", "--out", str(tmp_path / "a")]) == 0
+    strict = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert main([*argv, "--out", str(tmp_path / "b")]) == 0
+    default = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # no window has 500 corners: nothing is selected; the default selects and tracks
+    assert strict["selection_failures"] == 1 and strict["tracked_fraction"] == 0.0
+    assert default["selection_failures"] == 0 and default["tracked_fraction"] >= 0.9
+    cfg = tomllib.loads((tmp_path / "a" / "config.toml").read_text())
+    assert cfg["feature"]["min_inliers"] == 500
+    assert cfg["feature"]["context_isotropy"] == TrackerSettings().context_isotropy   # every field, resolved
+    assert main([*argv, "--set", "feature.context_isotropy=2", "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "feature.context_isotropy" in err and "[0.0, 1.0]" in err

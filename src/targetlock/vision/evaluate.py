@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 import cv2
@@ -85,6 +85,7 @@ class EvalSettings:
                                         "sequences are also rendered on, besides the procedural mucosa")
     references: tuple[str, ...] = param(("mil", "lk"), choices=None,
                                         doc="OpenCV reference trackers run on the same frames (reference.reference_trackers)")
+    feature: TrackerSettings = field(default_factory=TrackerSettings)  # the feature tracker's settings
 
     def check(self, prefix: str = "") -> None:
         from ..config import ConfigError
@@ -250,7 +251,7 @@ def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict
 def _make(cfg: EvalSettings, tracker_settings, cam: CameraParams) -> Tracker:
     if cfg.tracker == "marker":
         return MarkerTracker(tracker_settings if isinstance(tracker_settings, MarkerSettings) else None, cam)
-    return FeatureTracker(tracker_settings if isinstance(tracker_settings, TrackerSettings) else None)
+    return FeatureTracker(cfg.feature)
 
 
 def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: int, threshold_px: float) -> tuple:
@@ -293,8 +294,14 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
     like the tracker's), ``settings``, ``rules``.
     Trackers are timed on one OpenCV thread (``fps`` counts only ``update`` calls).
+    ``tracker_settings``: the tracker's settings (a :class:`TrackerSettings` replaces
+    ``settings.feature``, and the result's ``settings`` show it; a :class:`MarkerSettings` is for
+    ``tracker = "marker"``).
     """
-    cfg = validate(settings or EvalSettings())
+    cfg = settings or EvalSettings()
+    if isinstance(tracker_settings, TrackerSettings):
+        cfg = replace(cfg, feature=tracker_settings)
+    cfg = validate(cfg)
     cam = cam or endoscope_camera()
     rs = render_settings or RenderSettings(fresh_noise=True)
     if cfg.tracker == "marker":
