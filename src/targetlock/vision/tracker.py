@@ -428,8 +428,8 @@ class TrackerSettings:
     context_isotropy: float = param(0.0, lo=0.0, hi=1.0,
                                     doc="a window smaller than large_window_px whose texture isotropy (see "
                                         "edge_isotropy) is below this is widened 1.5x, else 2x, for more context around "
-                                        "the target: the first that reaches it, else the most isotropic; 0: never "
-                                        "(default: 0.15 tracks more but slides along plain rims, see docs/vision.md)")
+                                        "the target: the first that reaches it, else the most isotropic; 0: never (the "
+                                        "default: 0.15 tracks more, but slides along plain rims; see docs/vision.md)")
     highlight_clearance_px: int = param(5, unit="px", lo=0, hi=50,
                                         doc="in a large window (large_window_px), a feature is neither detected nor "
                                             "followed within this distance of a highlight (the reach of the "
@@ -1073,7 +1073,7 @@ class FeatureTracker(Tracker):
             #   0's mucosa `occlusion` at 160 px: the search found its edge and re-locked 184 px off).
             # - A window widened for context (context_isotropy) is large too: it has corners enough, and on
             #   the plain surface it was widened for, the glints' rims are the corners nearest the target
-            #   (seeds 0-8 without it: false locks on 0.9 % of the frames, 2.6 times as many as with it, up to
+            #   (seeds 0-8 without it: false locks on 0.9 % of the frames, 7 times as many as with it, up to
             #   78 % of seed 5's coffee `blur`, trailing the target by 11-20 px; with the whole window, not
             #   its centre, as the dense template: seed 5's doubled).
             large = window_px >= s.large_window_px or context
@@ -1120,8 +1120,9 @@ class FeatureTracker(Tracker):
         80 px window along one direction only, and motion blur along it leaves nothing to follow (seeds 0-8:
         the 41 photograph windows of 80 px with isotropy below 0.1 were tracked on 75 % of their frames, 90 %
         when selected at 160 px, and half of the frames the photographs lost were theirs); the surroundings
-        hold corners in other directions. The first larger window that reaches the isotropy is taken, else the most isotropic;
-        each needs ``min_inliers`` corners at the same quality and masking. Returns the window and its isotropy."""
+        hold corners in other directions. The first larger window that reaches the isotropy is taken, else
+        the most isotropic; each needs ``min_inliers`` corners at the same quality and masking. Returns the
+        window and its isotropy."""
         s = self.settings
         window, quality, masked = found[:3]
         if self._window != window:
