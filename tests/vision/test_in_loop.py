@@ -31,6 +31,21 @@ def test_marker_tracker_in_the_loop(capsys, tmp_path):
     assert s["vision"]["tracker_median_px"] < 2.0 and s["lost_fraction"] == 0.0
 
 
+def test_the_feature_trackers_settings_reach_the_loop(capsys, tmp_path):
+    """`run --vision --set feature_tracker.FIELD=VALUE` configures the tracker in the loop, the run
+    folder's config records every tracker field as resolved, and a bad value names the field."""
+    import tomllib
+    argv = ["run", "--vision", "--seconds", "3", "--json"]
+    assert main([*argv, "--set", "feature_tracker.min_inliers=500", "--out", str(tmp_path / "strict")]) == 0
+    strict = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert strict["lost_fraction"] == 1.0          # no window has 500 corners: never selected, never steered
+    cfg = tomllib.loads((tmp_path / "strict" / "config.toml").read_text())
+    assert cfg["feature_tracker"]["min_inliers"] == 500 and cfg["feature_tracker"]["max_features"] == 40
+    assert main([*argv, "--set", "feature_tracker.context_isotropy=2", "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert "feature_tracker.context_isotropy" in err and "[0.0, 1.0]" in err
+
+
 def test_video_without_vision_is_refused(capsys, tmp_path):
     assert main(["run", "--video", str(tmp_path / "x.mp4"), "--seconds", "3"]) == 2
     assert "--vision" in capsys.readouterr().err

@@ -306,7 +306,8 @@ class ConsoleSession:
         self.vision = None
         if self.twin:
             from ..vision.pipeline import VisionPipeline
-            self.vision = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed)
+            self.vision = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed,
+                                         tracker_settings=cfg.feature_tracker)
             self.tap: TapTracker | None = TapTracker(self.vision.tracker, self.vision.window_px)
             self.vision.tracker = self.tap
             rig = build_rig(cfg, self.vision)

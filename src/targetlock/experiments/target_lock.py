@@ -25,6 +25,7 @@ from ..model.twin import TwinConfig
 from ..rig.base import FrameLog
 from ..recording import RunMcap
 from ..rig.simulated import ObservationNoise, SimulatedRig
+from ..vision.tracker import TrackerSettings
 from .runfolder import RunFolder
 
 __all__ = ["RunConfig", "build_rig", "run_target_lock", "plot_run", "COLUMNS"]
@@ -45,6 +46,7 @@ class RunConfig:
     tracker: ObservationNoise = field(default_factory=ObservationNoise)
     vision: bool = param(False, doc="render frames and track them instead of the ideal projection")
     vision_tracker: str = param("feature", choices=("feature", "marker"), doc="tracker used with vision = true")
+    feature_tracker: TrackerSettings = field(default_factory=TrackerSettings)  # the feature tracker's settings
     realtime: bool = param(False, doc="run on the wall clock instead of as fast as possible")
     seed: int = param(0, lo=0, hi=2**63 - 1, doc="seed of everything random in the run")
 
@@ -214,7 +216,7 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
         # Partial frames where only the tracker reads them: the pipeline renders whole frames while a
         # video or the run folder's MCAP (its on_frame) takes them.
         vision = frame_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed, video=video,
-                                             regions=True)
+                                             regions=True, tracker_settings=cfg.feature_tracker)
     rig = rig if hardware else build_rig(cfg, frame_hook)
     ctrl = build_controller(cfg, rig)
     realtime = cfg.realtime or hardware

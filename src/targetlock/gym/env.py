@@ -179,7 +179,7 @@ class TargetLockEnv(gym.Env):
         if self.cfg.vision:
             from ..vision.pipeline import VisionPipeline
             hook = VisionPipeline(self.cfg.twin, tracker=self.cfg.vision_tracker, seed=self.cfg.seed,
-                                  on_frame=self._keep_frame)
+                                  on_frame=self._keep_frame, tracker_settings=self.cfg.feature_tracker)
         self.rig = build_rig(self.cfg, hook)
         lo, hi = self.rig.drives.limits
         rpt = self.rig.drives.rad_per_tick

@@ -25,7 +25,7 @@ from ..model.twin import TwinConfig
 from ..rig.base import Observation
 from .overlay import draw_overlay
 from .render import PlanarTarget, RenderSettings, Renderer, interpolate_pose
-from .tracker import TrackResult, make_tracker, to_observation
+from .tracker import TrackerSettings, TrackResult, make_tracker, to_observation
 
 __all__ = ["VisionPipeline", "REGION_MARGIN_PX"]
 
@@ -36,13 +36,15 @@ keyframes within a window + 32 px of the target."""
 
 
 class VisionPipeline:
-    """Render -> track -> observation, called by the simulated rig at each frame capture."""
+    """Render -> track -> observation, called by the simulated rig at each frame capture.
+    ``tracker_settings``: the feature tracker's settings (``RunConfig.feature_tracker``; default
+    :class:`TrackerSettings`)."""
 
     def __init__(self, twin: TwinConfig, *, tracker: str = "feature", window_px: int = 96, seed: int = 0,
                  settings: RenderSettings | None = None, exposure_fraction: float = 0.5,
                  video: str | Path | None = None,
                  on_frame: Callable[[float, np.ndarray, TrackResult], None] | None = None,
-                 regions: bool = False) -> None:
+                 regions: bool = False, tracker_settings: TrackerSettings | None = None) -> None:
         self.cam = twin.camera
         # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
         size = (0.4, 0.4)
@@ -50,7 +52,7 @@ class VisionPipeline:
                        if tracker == "marker" else PlanarTarget.mucosa(size_m=size, seed=seed, texture_px=4096))
         self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed,
                                  surface=twin.scene.surface)
-        self.tracker = make_tracker(tracker, camera=self.cam)
+        self.tracker = make_tracker(tracker, tracker_settings if tracker == "feature" else None, camera=self.cam)
         self.window_px = window_px
         self.exposure = exposure_fraction / self.cam.fps   # s, the shutter is open this long before capture
         self.prev: tuple[float, np.ndarray, np.ndarray] | None = None
