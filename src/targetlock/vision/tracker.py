@@ -534,9 +534,9 @@ class TrackerSettings:
                                          "dense_reacquire_lead but at least this much is accepted once it has been "
                                          "found again, where the tissue around it moved, on dense_streak_frames "
                                          "consecutive frames")
-    phase_dense: bool = param(True, doc="just selected or re-acquired and no corner follows: a dense keyframe match "
-                                        "placed by the region's phase correlation and agreeing with it carries the "
-                                        "frame")
+    phase_dense: bool = param(True, doc="just selected or re-acquired on the selection keyframe and no corner "
+                                        "follows: a dense match of the selection keyframe placed by the region's "
+                                        "phase correlation and agreeing with it carries the frame")
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
@@ -1598,11 +1598,12 @@ class FeatureTracker(Tracker):
             # holds its outline, and right after a re-lock the phase correlation followed the receding
             # instrument and that keyframe's dense match agreed (held-out seed 15's retina `occlusion`:
             # 27 px off on the frame after a correct re-lock, then 140-148 px on the instrument).
+            sel = self._anchor  # the selection keyframe: anchor -> anchor is the identity
             pview = view if np.hypot(*(pred - phased)) < 1e-9 else self._crop(frame, phased)
-            key_to_ph = _translation(phased - self._pos) @ self._from_anchor @ _inv(self._key.from_anchor)
-            wv = self._warp(pview, key_to_ph @ self._key.view.to_frame)
-            dense = self._match_ecc(self._key, key_to_ph, wv) or self._match_dense(self._key, key_to_ph, wv)
-            if dense is not None and np.hypot(*(_apply(dense[0], self._key.target) - phased)) <= s.consistency_px:
+            sel_to_ph = _translation(phased - self._pos) @ self._from_anchor
+            wv = self._warp(pview, sel_to_ph @ sel.view.to_frame)
+            dense = self._match_ecc(sel, sel_to_ph, wv) or self._match_dense(sel, sel_to_ph, wv)
+            if dense is not None and np.hypot(*(_apply(dense[0], sel.target) - phased)) <= s.consistency_px:
                 est_chain, pred, view = phased, phased, pview
                 self.stats["phase_dense"] += 1
             else:
