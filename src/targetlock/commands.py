@@ -125,7 +125,8 @@ def _run(args: argparse.Namespace) -> int:
             from .config import save_toml
             from .rig.hardware import HardwareRig
             save_toml(hw, run.file("rig.toml"))
-            with HardwareRig(hw, cfg.twin.camera, loop_rate=cfg.loop.rate) as rig:
+            with HardwareRig(hw, cfg.twin.camera, loop_rate=cfg.loop.rate,
+                             tracker_settings=cfg.feature_tracker) as rig:
                 s = run_target_lock(cfg, run, progress=True, rig=rig)
         else:
             s = run_target_lock(cfg, run, progress=True, video=args.video)

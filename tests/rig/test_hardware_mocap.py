@@ -148,3 +148,38 @@ def test_rig_refuses_to_start_without_the_target_body(world):
     cfg = replace(cfg, observations=replace(cfg.observations, target_body_name="Ball"))
     with pytest.raises(NatNetStartError, match=r"target 'Ball'.*'Target' \(id 3\)"):
         HardwareRig(cfg, CameraParams())
+
+
+def test_a_camera_source_tracks_with_the_runs_tracker_settings(world, tmp_path):
+    # The rig file names the device and the tracker; how the feature tracker is tuned comes from the run's
+    # config (`feature_tracker`), as on the twin, so a setting tuned in `vision-eval` also holds on the rig.
+    from targetlock.vision.render import PlanarTarget, Renderer, make_pose
+    from targetlock.vision.sources import write_video
+    from targetlock.vision.tracker import TrackerSettings
+
+    scope, srv, can = world
+    camera = CameraParams()
+    r = Renderer(camera, target=PlanarTarget.mucosa(size_m=(0.3, 0.3), seed=2, texture_px=512), seed=2)
+    frames = [r.render(np.eye(4), make_pose((0.001 * k - 0.02, 0.0, 0.12)), point_m=(0.02, 0.0)).image for k in range(20)]
+    video = write_video(tmp_path / "v.avi", frames, fps=20.0, codec="MJPG")
+    cfg = replace(rig_config(srv, can), observations=ObservationSourceConfig(kind="camera", device=str(video), window_px=80))
+    settings = TrackerSettings(max_misses=9, context_isotropy=0.15)
+    for given, expected in ((settings, settings), (None, TrackerSettings())):
+        rig = HardwareRig(cfg, camera, tracker_settings=given)
+        try:
+            assert rig.observations.tracker.settings == expected
+            rig.start_clock()
+            deadline, got = time.monotonic() + 10.0, []
+            while time.monotonic() < deadline and not any(o.valid for o in got):
+                if rig.observations.wait_arrival(0.05):
+                    got.extend(rig.observations.poll(0.0))
+            assert any(o.valid for o in got)                       # frames tracked through the rig
+        finally:
+            rig.close()
+    # A marker tracker has settings of its own: the feature tracker's are not handed to it.
+    marker = replace(cfg, observations=replace(cfg.observations, tracker="marker"))
+    rig = HardwareRig(marker, camera, tracker_settings=settings)
+    try:
+        assert not isinstance(rig.observations.tracker.settings, TrackerSettings)
+    finally:
+        rig.close()

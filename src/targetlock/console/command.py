@@ -55,7 +55,7 @@ def _console(args: argparse.Namespace) -> int:
     if args.rig:
         from ..interfaces.rigfile import load_rig_file
         from ..rig.hardware import HardwareRig
-        rig = HardwareRig(load_rig_file(args.rig), cfg.twin.camera)
+        rig = HardwareRig(load_rig_file(args.rig), cfg.twin.camera, tracker_settings=cfg.feature_tracker)
     session = ConsoleSession(cfg, rig=rig, runs_root=args.runs)
     server = ConsoleServer(session, host=args.host, port=args.port, token=token)
     session.start(loop_nice=args.loop_nice)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from ..interfaces.safety import SafeDrives
 from ..model.camera import CameraParams, LatencyLine, project, world_to_camera
 from ..model.kinematics import bending_angles_from_poses
 from .base import FrameLog, Observation, ObservationSource, Rig
+
+if TYPE_CHECKING:   # vision loads only for a camera source
+    from ..vision.tracker import TrackerSettings
 
 __all__ = ["HardwareRig", "MocapObservations", "pose_of", "calibrate_straight", "CALIBRATION_WAIT_S"]
 
@@ -138,9 +142,12 @@ def calibrate_straight(client: NatNetClient, observations: MocapObservations, ma
 class HardwareRig(Rig):
     """Drives on CANopen (behind :class:`SafeDrives`), NatNet and an observation source."""
 
-    def __init__(self, config: HardwareRigConfig, camera: CameraParams, *, loop_rate: float | None = None) -> None:
+    def __init__(self, config: HardwareRigConfig, camera: CameraParams, *, loop_rate: float | None = None,
+                 tracker_settings: TrackerSettings | None = None) -> None:
         """``loop_rate`` (Hz): the control loop's rate; the drives' timing settings are checked against
-        it (``CanopenRigConfig.check_timing``) before anything is opened."""
+        it (``CanopenRigConfig.check_timing``) before anything is opened. ``tracker_settings``: the
+        feature tracker's settings for a camera source (the run's ``feature_tracker``; the rig file
+        says which device and tracker, the run config how the tracker is tuned, as on the twin)."""
         if loop_rate is not None:
             config.can.check_timing(loop_rate)
         self.config = config
@@ -164,7 +171,7 @@ class HardwareRig(Rig):
                                                   target_id=ids["target"], clock_offset=self._t0)
         else:
             from ..vision.live import CameraObservations
-            self.observations = CameraObservations(obs, camera)
+            self.observations = CameraObservations(obs, camera, tracker_settings=tracker_settings)
 
     def start_clock(self) -> None:
         """Loop time zero is now (called by the loop right after homing). With

@@ -21,7 +21,7 @@ import time
 from ..model.camera import CameraParams
 from ..rig.base import HandoffSource, Observation
 from .sources import CaptureSource, FrameSource, VideoFileSource
-from .tracker import make_tracker, to_observation
+from .tracker import TrackerSettings, make_tracker, to_observation
 
 __all__ = ["CameraObservations", "open_source"]
 
@@ -35,16 +35,19 @@ class CameraObservations(HandoffSource):
     """Tracker thread over a frame source with a newest-only hand-off to the loop.
 
     ``latency`` (s): capture-to-grab delay subtracted from each grab time (default: the camera's
-    configured video latency)."""
+    configured video latency). ``tracker_settings``: the feature tracker's settings (the run's
+    ``feature_tracker`` section; default :class:`~targetlock.vision.tracker.TrackerSettings`), used
+    when ``config.tracker`` is ``"feature"``."""
 
     def __init__(self, config, camera: CameraParams, *, source: FrameSource | None = None,
-                 latency: float | None = None) -> None:
+                 latency: float | None = None, tracker_settings: TrackerSettings | None = None) -> None:
         super().__init__()
         self.camera = camera
         self.latency = float(camera.latency if latency is None else latency)
         self.source = source or open_source(config.device)
         self.live = isinstance(self.source, CaptureSource)   # stamps on the monotonic clock
-        self.tracker = make_tracker(config.tracker, camera=camera)
+        self.tracker = make_tracker(config.tracker, tracker_settings if config.tracker == "feature" else None,
+                                    camera=camera)
         self.window_px = config.window_px
         self._stop = threading.Event()
         self._t0 = time.monotonic()
