@@ -3,7 +3,7 @@ instruments slowly covering the target, dropped frames (issue 14)."""
 import numpy as np
 import pytest
 
-from targetlock.vision import FeatureTracker, PlanarTarget, Renderer, RenderSettings
+from targetlock.vision import FeatureTracker, PlanarTarget, Renderer, RenderSettings, TrackerSettings
 from targetlock.vision.texture import mucosa_texture
 
 P_SEL = (0.021, -0.013)
@@ -319,12 +319,16 @@ def test_a_poorly_determined_scale_or_rotation_does_not_lose_the_target(cam, pho
     from targetlock.vision.texture import photo_texture
     target = PlanarTarget((0.2, 0.2), photo_texture(photo), (0.0, 0.0))
     frames = render_sequence(name, EvalSettings(), seed=seed, cam=cam, target=target)[:n]
-    tr = FeatureTracker()
-    res = _run(tr, frames, [i / cam.fps for i in range(len(frames))])
-    errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
-    assert not any(r.lost for r in res) and np.sum(~np.isfinite(errs)) <= 3, errs.round(2)
-    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(2)  # vision-eval's threshold
-    assert tr.stats["similarity_dropped"] + tr.stats["similarity_limited"] > 0
+    # The rule in the 80 px window it was found on, and the defaults (which widen the rim's window for
+    # context, so the rule may not be needed there).
+    for settings, rule in ((TrackerSettings(context_isotropy=0.0), True), (TrackerSettings(), False)):
+        tr = FeatureTracker(settings)
+        res = _run(tr, frames, [i / cam.fps for i in range(len(frames))])
+        errs = np.array([_err(r, f) for r, f in zip(res, frames[1:])])
+        assert not any(r.lost for r in res) and np.sum(~np.isfinite(errs)) <= 3, errs.round(2)
+        assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(2)  # vision-eval's threshold
+        if rule:
+            assert tr.stats["similarity_dropped"] + tr.stats["similarity_limited"] > 0
 
 
 def test_an_implausible_view_step_keeps_the_position_but_not_the_scale_or_rotation(renderer, sel_pose):
