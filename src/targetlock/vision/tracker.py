@@ -1137,7 +1137,7 @@ class FeatureTracker(Tracker):
         window, quality, masked = found[:3]
         if self._window != window:
             self._setup_window(frame_bgr, window)
-        best, best_iso = found, self._window_isotropy(found[3], p, found[4])
+        best, best_iso = found, self._window_isotropy(found[3], p)
         for grow in (1.5, 2.0):
             if best_iso >= s.context_isotropy:
                 break
@@ -1149,14 +1149,15 @@ class FeatureTracker(Tracker):
             pts, n_strong = self._corners(view, p, 0.5 * w, quality, masked)
             if len(pts) < s.min_inliers:
                 continue
-            iso = self._window_isotropy(view, p, pts)
+            iso = self._window_isotropy(view, p)
             if iso > best_iso:
                 best, best_iso = (w, quality, masked, view, pts, n_strong), iso
         return best, best_iso
 
-    def _window_isotropy(self, view: _View, p: np.ndarray, pts: np.ndarray) -> float:
-        """Isotropy (:meth:`_isotropies`) of the current window's texture around ``p`` (px) in ``view``."""
-        return self._isotropies(view, p, _Keyframe(view, pts, p, np.eye(3)), np.eye(3))[0]
+    def _window_isotropy(self, view: _View, p: np.ndarray) -> float:
+        """Isotropy (:meth:`_isotropy`) of the current window's texture around ``p`` (px) in ``view``."""
+        iso = self._isotropy(view, p, view, np.eye(3), 1.0, int(round(0.5 * self._window)))
+        return 1.0 if iso is None else iso
 
     def _setup_window(self, frame_bgr: np.ndarray, window_px: float) -> None:
         s = self.settings
@@ -1864,39 +1865,49 @@ class FeatureTracker(Tracker):
         inside the field of view and clear of highlights (a clipped area has no texture in either:
         an exposure step that clips part of the window changes neither)."""
         sc = _scale_angle(ref_to_frame)[0]  # this frame's px per keyframe px
-        near = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
         parts = []
         for v, centre, other, to_other, k in ((view, est, ref.view, _inv(ref_to_frame), max(1.0, sc)),
                                               (ref.view, ref.target, view, ref_to_frame, max(1.0, 1.0 / sc))):
             # the same area of tissue in both (the keyframe's px are 1 / sc of this frame's), smoothed to
             # the same scale on it: the finer view by its px per the other's (k)
             half = int(round(0.5 * self._window * (1.0 if v is view else 1.0 / sc)))
-            sigma = k
-            m = int(math.ceil(3 * sigma)) + 2  # the smoothing's and the derivative's reach
-            side = 2 * (half + m) + 1
-            c = np.round(np.asarray(centre, float) - v.to_frame[:2, 2]) - (half + m)  # window origin, local px
-            crop = np.array([[1.0, 0.0, c[0]], [0.0, 1.0, c[1]], [0.0, 0.0, 1.0]])
-            g = cv2.warpAffine(v.gray, crop[:2], (side, side), flags=near, borderMode=cv2.BORDER_REPLICATE)
-            own = cv2.warpAffine(v.sat.view(np.uint8) | (v.fov == 0).view(np.uint8), crop[:2], (side, side), flags=near,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=1)
-            mp = _inv(other.to_frame) @ to_other @ v.to_frame @ crop
-            theirs = cv2.warpAffine(other.sat.view(np.uint8) | (other.fov == 0).view(np.uint8), mp[:2], (side, side),
-                                    flags=near, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
-            usable = cv2.dilate(own | theirs, np.ones((2 * m - 1, 2 * m - 1), np.uint8))[m:-m, m:-m] == 0
-            g1 = cv2.getGaussianKernel(2 * half + 1, 0.5 * half, cv2.CV_32F)
-            w = (g1 @ g1.T) * usable
-            if float(w.sum()) < 0.1:  # too little usable texture to compare: no verdict
+            iso = self._isotropy(v, centre, other, to_other, k, half)
+            if iso is None:  # too little usable texture to compare: no verdict
                 return 1.0, 1.0
-            w /= w.sum()
-            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)
-            gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[m:-m, m:-m]
-            gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[m:-m, m:-m]
-            a, b, d = float(np.sum(w * gx * gx)), float(np.sum(w * gx * gy)), float(np.sum(w * gy * gy))
-            mean, r = 0.5 * (a + d), math.sqrt(0.25 * (a - d) ** 2 + b * b)
-            nz = self._grad_noise(round(sigma, 2)) * v.noise() ** 2
-            lo, hi = mean - r - nz, mean + r - nz
-            parts.append(max(lo, 0.0) / hi if hi > 1e-6 else 0.0)
+            parts.append(iso)
         return parts[0], parts[1]
+
+    def _isotropy(self, v: _View, centre: np.ndarray, other: _View, to_other: np.ndarray, sigma: float,
+                  half: int) -> float | None:
+        """Isotropy of the texture in ``v`` within ``half`` px of ``centre`` (px), smoothed by ``sigma``
+        px, where ``v`` and ``other`` (``v``'s frame -> ``other``'s frame: ``to_other``, 3x3) are both
+        inside the field of view and clear of highlights (see :meth:`_isotropies`); None when too little
+        of the window is usable."""
+        near = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+        m = int(math.ceil(3 * sigma)) + 2  # the smoothing's and the derivative's reach
+        side = 2 * (half + m) + 1
+        c = np.round(np.asarray(centre, float) - v.to_frame[:2, 2]) - (half + m)  # window origin, local px
+        crop = np.array([[1.0, 0.0, c[0]], [0.0, 1.0, c[1]], [0.0, 0.0, 1.0]])
+        g = cv2.warpAffine(v.gray, crop[:2], (side, side), flags=near, borderMode=cv2.BORDER_REPLICATE)
+        own = cv2.warpAffine(v.sat.view(np.uint8) | (v.fov == 0).view(np.uint8), crop[:2], (side, side), flags=near,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=1)
+        mp = _inv(other.to_frame) @ to_other @ v.to_frame @ crop
+        theirs = cv2.warpAffine(other.sat.view(np.uint8) | (other.fov == 0).view(np.uint8), mp[:2], (side, side),
+                                flags=near, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
+        usable = cv2.dilate(own | theirs, np.ones((2 * m - 1, 2 * m - 1), np.uint8))[m:-m, m:-m] == 0
+        g1 = cv2.getGaussianKernel(2 * half + 1, 0.5 * half, cv2.CV_32F)
+        w = (g1 @ g1.T) * usable
+        if float(w.sum()) < 0.1:
+            return None
+        w /= w.sum()
+        g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)
+        gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[m:-m, m:-m]
+        gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[m:-m, m:-m]
+        a, b, d = float(np.sum(w * gx * gx)), float(np.sum(w * gx * gy)), float(np.sum(w * gy * gy))
+        mean, r = 0.5 * (a + d), math.sqrt(0.25 * (a - d) ** 2 + b * b)
+        nz = self._grad_noise(round(sigma, 2)) * v.noise() ** 2
+        lo, hi = mean - r - nz, mean + r - nz
+        return max(lo, 0.0) / hi if hi > 1e-6 else 0.0
 
     def _edge_smeared(self, view: _View, est: np.ndarray, ref: _Keyframe, ref_to_frame: np.ndarray) -> float | None:
         """For a keyframe from this frame: None when the target window (at ``est`` px in ``view``) is not
