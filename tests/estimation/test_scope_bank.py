@@ -171,3 +171,33 @@ def test_in_the_loop_its_first_switch_on_a_looped_shaft_is_to_a_good_candidate_w
 def test_in_the_loop_it_keeps_the_assumed_scope_when_that_is_the_real_one(distance, path):
     c, times, member, err = _closed_loop("calibrated", distance, path)
     assert c.selector.switches == 0 and np.all(member == 0)
+
+
+def test_rows_only_the_right_candidate_explains_count_and_rows_none_explains_are_dropped():
+    """The selector's criterion (``rough_residuals`` with common outliers): the tip's stick-slip jumps
+    are in the image and in the right candidate's modelled motion only; the wrong candidates move
+    the same distance smoothly. The jump frames must stay in the judgement (they are what tells the
+    scopes apart), a tracker outlier that no candidate explains must be dropped for all of them, and
+    the right candidate must come out clearly best."""
+    from targetlock.estimation.play import rough_residuals
+    rng = np.random.default_rng(3)
+    n, wrong = 120, 9
+    t = np.arange(n) * 0.05
+    smooth = np.column_stack([0.08 * np.sin(2 * np.pi * 0.3 * t), 0.05 * np.sin(2 * np.pi * 0.2 * t + 1.0)])
+    jumps = (20, 50, 80, 105)
+    steps = np.zeros((n, 2))
+    ramps = np.zeros((n, 2))
+    for k in jumps:
+        steps[k:, 0] += 0.03                                       # rad, a slip of the tip in one frame
+        ramps[k - 5:, 0] += 0.03 * np.clip(np.arange(n - k + 5) / 10.0, 0.0, 1.0)   # the same slip over 10 frames
+    p = np.stack([smooth + steps] + [smooth + ramps] * wrong)      # candidate 0 is right
+    x = (J @ (smooth + steps).T).T + rng.normal(0.0, 0.5, (n, 2))
+    outlier = 66
+    x[outlier] += (40.0, -30.0)                                    # a tracker jump for one frame
+    _, rn, kept = rough_residuals(x, p, J, common_outliers=True)
+    # Row i is the increment into frame i + 1.
+    assert np.all(kept[:, np.array(jumps) - 1] == 1)              # the jumps count, for every candidate
+    assert np.all(kept[:, [outlier - 1, outlier]] == 0)            # the outlier's two increments do not
+    assert np.all(kept == kept[0])                                 # the same rows for all
+    cost = np.sum(rn * kept, axis=1)
+    assert cost[0] < 0.6 * cost[1:].min()

@@ -51,8 +51,11 @@ def fit_rough(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.
     where it says nothing), and the L1 roughness (k,) of the residual ``Hx − J·Hp``, H: the frame
     increments less their running mean over ``span`` frames. Rows whose residual exceeds 3× the median
     (tracker outliers, target jumps) are dropped and the fit repeated once; with ``common_outliers`` the
-    same rows for every candidate (those that most candidates fail on), so a candidate is not rewarded
-    for the rows only it cannot explain (e.g. a stick-slip jump that only the right model predicts)."""
+    same rows for every candidate: those that no candidate explains. A candidate is then neither let off
+    the rows only it cannot explain nor denied the rows only it can (a stick-slip jump that only the
+    right model predicts). (Dropping the rows most candidates fail on, as before, threw exactly those
+    away: robustness seeds 0/23/1/204/7/101/201, `adaptive` median rms 24.7/27.9/29.3/26.3/33.5/28.0/30.9
+    -> 23.4/27.2/29.3/24.5/31.7/27.8/30.6 px.)"""
     j, rn, w = rough_residuals(x, p, prior, ridge, span, common_outliers)
     return j, np.sum(rn * w, axis=1) / np.maximum(np.sum(w, axis=1), 1.0) * rn.shape[1]
 
@@ -77,5 +80,5 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
         rn = np.sqrt(np.sum(r * r, axis=-1))
         w = (rn <= 3.0 * np.median(rn, axis=1, keepdims=True) + 1e-12).astype(float)
         if common_outliers:
-            w = np.broadcast_to(np.median(w, axis=0) >= 0.5, w.shape).astype(float)
+            w = np.broadcast_to(np.any(w > 0, axis=0), w.shape).astype(float)
     return np.transpose(jt, (0, 2, 1)), rn, w
