@@ -79,8 +79,8 @@ def test_selector_ignores_garbage_frames():
 
 
 def test_selector_switches_as_soon_as_it_judges_when_the_evidence_is_strong():
-    """With a lot of own motion (reversals on both axes every ~1.5 s) the first judgement (80 frames,
-    4 s of frames at 20 fps, confirmed 10 frames later) already finds the scope: the switch comes at
+    """With a lot of own motion (reversals on both axes every ~1.5 s) the first judgement (50 frames,
+    2.5 s of frames at 20 fps, confirmed 10 frames later) already finds the scope: the switch comes at
     the first possible frame, not seconds later."""
     cands = scope_candidates(EndoscopeParams(), 32)
     truth = cands[12]
