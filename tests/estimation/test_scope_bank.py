@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from targetlock.estimation import ScopeSelector, TipModel, scope_candidates
+from targetlock.estimation.play import rough_residuals
 from targetlock.model.endoscope import EndoscopeParams
 
 DELAYS = np.arange(-0.16, 0.33, 0.04)
@@ -179,7 +180,6 @@ def test_rows_only_the_right_candidate_explains_count_and_rows_none_explains_are
     the same distance smoothly. The jump frames must stay in the judgement (they are what tells the
     scopes apart), a tracker outlier that no candidate explains must be dropped for all of them, and
     the right candidate must come out clearly best."""
-    from targetlock.estimation.play import rough_residuals
     rng = np.random.default_rng(3)
     n, wrong = 120, 9
     t = np.arange(n) * 0.05
