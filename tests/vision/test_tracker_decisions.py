@@ -314,9 +314,10 @@ def test_a_target_strewn_with_glints_is_relocked_where_its_window_correlates_aro
     band-pass halo), and the target, 13-22 px from where it was last seen, was never found again in the 21
     frames it was back in view. The local re-lock is now also seeded where the selection's window
     (glints left out with a few px of halo) correlates best around the last position: found again,
-    never at a wrong place."""
+    never at a wrong place. (Following the scene's motion while lost finds it too: it is off for the
+    comparison.)"""
     target = PlanarTarget.mucosa(seed=5, texture_px=RenderSettings().texture_px)
-    _assert_found_again_after_the_instrument(target, 5, 12, TrackerSettings(local_seed_px=0.0))
+    _assert_found_again_after_the_instrument(target, 5, 12, TrackerSettings(local_seed_px=0.0, scene_relock=False))
 
 
 def test_an_edge_like_window_is_widened_for_context():

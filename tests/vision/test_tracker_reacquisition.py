@@ -182,3 +182,29 @@ def test_a_target_lost_at_the_edge_is_searched_for_at_its_central_scale_too():
     back = np.flatnonzero(vis[:-1] & ~vis[1:])[-1] + 1
     assert np.all(errs[np.isfinite(errs)] < 8.0) and np.all(ref[np.isfinite(ref)] < 8.0)
     assert np.sum(errs[back:] < 8.0) >= np.sum(ref[back:] < 8.0) + 8, (errs[back:].round(1), ref[back:].round(1))
+
+
+def test_a_target_that_left_the_view_is_relocked_where_the_scene_brings_it_back(cam):
+    """The view pans until the target has left the round field of view (8.5 cm sideways at 5 cm) and
+    pans back along a line 2 cm lower: the target comes back ~100 px from where it was last seen,
+    beyond the local re-lock's reach (without following the scene it is still lost 16 frames after
+    it is back). While lost the tracker carries the target's predicted place on by the motion of
+    the tissue around it, and re-locks there within two frames of the target being back in view,
+    never reporting a wrong place."""
+    r = Renderer(cam, RenderSettings(), PlanarTarget.mucosa(seed=3), seed=11)
+    n = 50
+    frames = [r.render(np.eye(4), _pose((0.085 * np.sin(np.pi * i / (n - 1)) ** 2,
+                                         0.02 * np.clip((i / (n - 1) - 0.3) / 0.3, 0.0, 1.0), 0.05), (0.0, 0.0, 0.0)),
+                       point_m=P_SEL) for i in range(n)]
+    visible = np.array([f.visible for f in frames])
+    back = int(np.flatnonzero(~visible)[-1]) + 1                          # the first frame back in view
+    assert (~visible).sum() >= 10 and visible[back:].all()
+    assert np.hypot(*(frames[back].truth_px - frames[int(np.flatnonzero(~visible)[0]) - 1].truth_px)) > 60
+    tr = FeatureTracker()
+    res = _run(tr, frames)
+    errs = np.array([np.hypot(*(r_.position_px - f.truth_px)) if r_.valid else np.inf for r_, f in zip(res, frames[1:])])
+    assert np.all(errs[np.isfinite(errs)] < 8.0), errs.round(1)            # never a wrong place
+    assert not any(r_.valid for r_, f in zip(res, frames[1:]) if not f.visible)
+    assert np.all(np.isfinite(errs[back - 1 + 2:])), errs[back - 1:].round(1)   # re-locked within 2 frames
+    assert np.all(errs[-8:] < 2.0), errs.round(1)
+    assert tr.stats["scene_relocks"] >= 1
