@@ -16,10 +16,45 @@ use, so ``import targetlock`` stays cheap::
 from __future__ import annotations
 
 import importlib
+import os
+import platform
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+# x86-64 feature flags of the level the numba kernels are compiled for (x86-64-v3: AVX2, FMA, BMI2)
+_X86_64_V3 = ("avx2", "fma", "bmi2", "f16c", "movbe")
+
+
+def _pin_numba_cpu() -> None:
+    """Compile the numba kernels for one x86-64 level, x86-64-v3, on every x86-64 machine that has it.
+
+    The renderer's kernels use fastmath, and LLVM tunes them to the host CPU: on an AVX-512 machine
+    (``emeraldrapids``) the rendered frames differed in their last bits from an AVX2 machine's, and
+    the tracker's frame-by-frame decisions on them with it (18 vision tests pinned to recorded
+    sequences failed there). With one target the frames, ``vision-eval``'s figures and the tests are
+    the same on every x86-64-v3 machine. Older or other CPUs compile for themselves. A
+    ``NUMBA_CPU_NAME`` the user set wins."""
+    if "NUMBA_CPU_NAME" in os.environ or platform.machine().lower() not in ("x86_64", "amd64"):
+        return
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as fh:
+            flags = next((line.split(":", 1)[1].split() for line in fh if line.startswith("flags")), [])
+    except OSError:
+        try:   # not Linux: ask LLVM (numba's own dependency; slower to import)
+            from llvmlite import binding
+            flags = [k for k, v in binding.get_host_cpu_features().items() if v]
+        except Exception:   # noqa: BLE001 - no numba here: nothing to pin
+            return
+    if all(f in flags for f in _X86_64_V3):
+        os.environ["NUMBA_CPU_NAME"] = "x86-64-v3"
+        if "numba" in sys.modules:   # imported before us: its configuration is read again
+            sys.modules["numba"].core.config.reload_config()
+
+
+_pin_numba_cpu()
 
 # public name -> module that defines it (imported lazily by __getattr__)
 _LAZY = {
