@@ -202,9 +202,9 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   handle gain) and the delay behind the frames' time stamps while it runs, takes its own tip motion
   from an online copy of the endoscope model (so taking up the cables' slack and turning the friction
   around are not mistaken for tip motion) — 32 candidate scopes around the assumed one run side by
-  side, and it steers with the one whose motion leaves the smoothest image residual, switching when
-  another is significantly better (the endoscope's parameters are the knowledge that matters most:
-  handed the true endoscope alone, its median on robustness seeds 0/204 drops from 23/25 to 15/16 px,
+  side, and it steers with the one whose motion best explains the image, switching when the
+  likelihood ratio says another is clearly better (the endoscope's parameters are the knowledge that matters most:
+  handed the true endoscope alone, its median on robustness seeds 0/204 drops from 23/22 to 15/16 px,
   the oracle's; the true latency or depth alone gives 23–26 px) — and steers as a
   latency-compensated visual servo on that Jacobian: each frame it removes 30 % of the offset the
   camera will show once the motion already under way is seen (a Smith predictor in image space), so
@@ -221,7 +221,7 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   3 s, and by at most 6 px (a lead on every estimated velocity, or an uncapped one, cost more in
   noise and overshoots than it gained), so a drift at 10–15 cm can still lag a little more than
   PI's; and at 1–2 cm on a scope far from the assumed one, a hunt
-  across the dead band until the scope bank has found a better candidate (it needs 4 s or more of
+  across the dead band until the scope bank has found a better candidate (it needs 3-4 s or more of
   own motion to tell them apart). On a
   wrongly stamped latency it depends on the delay estimate.
 """
