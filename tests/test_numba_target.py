@@ -2,7 +2,6 @@
 and everything measured on them are the same on every machine of that level."""
 import hashlib
 import os
-import platform
 import subprocess
 import sys
 
@@ -10,14 +9,14 @@ import pytest
 
 import targetlock
 
-V3 = platform.machine().lower() in ("x86_64", "amd64") and os.path.exists("/proc/cpuinfo") and all(
-    f in open("/proc/cpuinfo").read().split() for f in targetlock._X86_64_V3)
+V3 = targetlock._has_x86_64_v3()
 
 
 def _cpu_name(env: dict) -> str:
     code = "import os, targetlock; print(os.environ.get('NUMBA_CPU_NAME', 'host'))"
     env = {k: v for k, v in {**os.environ, **env}.items() if v is not None}
-    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.strip()
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return out.stdout.strip()
 
 
 @pytest.mark.skipif(not V3, reason="not an x86-64-v3 machine")

@@ -28,6 +28,22 @@ __version__ = "0.1.0"
 _X86_64_V3 = ("avx2", "fma", "bmi2", "f16c", "movbe")
 
 
+def _has_x86_64_v3() -> bool:
+    """Whether this machine is x86-64 with the x86-64-v3 features (:data:`_X86_64_V3`)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as fh:
+            flags = next((line.split(":", 1)[1].split() for line in fh if line.startswith("flags")), [])
+    except OSError:
+        try:   # not Linux: ask LLVM (numba's own dependency; slower to import)
+            from llvmlite import binding
+            flags = [k for k, v in binding.get_host_cpu_features().items() if v]
+        except Exception:   # noqa: BLE001 - no numba here: nothing to compile for
+            return False
+    return all(f in flags for f in _X86_64_V3)
+
+
 def _pin_numba_cpu() -> None:
     """Compile the numba kernels for one x86-64 level, x86-64-v3, on every x86-64 machine that has it.
 
@@ -37,21 +53,11 @@ def _pin_numba_cpu() -> None:
     sequences failed there). With one target the frames, ``vision-eval``'s figures and the tests are
     the same on every x86-64-v3 machine. Older or other CPUs compile for themselves. A
     ``NUMBA_CPU_NAME`` the user set wins."""
-    if "NUMBA_CPU_NAME" in os.environ or platform.machine().lower() not in ("x86_64", "amd64"):
+    if "NUMBA_CPU_NAME" in os.environ or not _has_x86_64_v3():
         return
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as fh:
-            flags = next((line.split(":", 1)[1].split() for line in fh if line.startswith("flags")), [])
-    except OSError:
-        try:   # not Linux: ask LLVM (numba's own dependency; slower to import)
-            from llvmlite import binding
-            flags = [k for k, v in binding.get_host_cpu_features().items() if v]
-        except Exception:   # noqa: BLE001 - no numba here: nothing to pin
-            return
-    if all(f in flags for f in _X86_64_V3):
-        os.environ["NUMBA_CPU_NAME"] = "x86-64-v3"
-        if "numba" in sys.modules:   # imported before us: its configuration is read again
-            sys.modules["numba"].core.config.reload_config()
+    os.environ["NUMBA_CPU_NAME"] = "x86-64-v3"
+    if "numba" in sys.modules:   # imported before us: its configuration is read again
+        sys.modules["numba"].core.config.reload_config()
 
 
 _pin_numba_cpu()

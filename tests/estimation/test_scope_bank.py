@@ -228,8 +228,7 @@ def _stick_slip_frames(follow_right: bool, seed: int, n: int = 130) -> tuple[Sco
 def test_a_few_stick_slip_frames_are_enough_to_switch_and_noise_is_not():
     """What tells two scopes apart is often only their stick-slip: 6 frames of 130 here, each a 18 px
     jump the wrong candidate spreads over 10 frames. The selector switches to the right candidate at
-    its first judgements (confirmed in the next window); when the image follows the assumed candidate
-    it never switches on the noise."""
+    its first judgements; when the image follows the assumed candidate it never switches on the noise."""
     for seed in range(4):
         sel, switched = _stick_slip_frames(True, seed)
         assert sel.best == 1 and switched and switched[0] <= sel.min_frames + 2 * sel.every, (seed, switched)

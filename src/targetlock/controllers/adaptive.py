@@ -16,7 +16,8 @@ J instead of assuming it, and steers with it:
   candidate endoscopes around the assumed one side by side (friction, stiffness, slack, handle gain);
   every few frames the one whose modelled motion best explains the image over the last ~6 s (each at
   its best delay; the likelihood of the high-passed residuals under heavy-tailed noise) replaces the
-  one steering when the likelihood ratio says it is clearly better; J's columns are carried over (within ×0.8–1.25). (Handing the
+  one steering when the likelihood ratio says it is clearly better; J's columns are carried over
+  (within ×0.8–1.25). (Handing the
   true endoscope to this controller was worth more than the true latency or depth: median 30.7/37.7
   -> 25.5/25.6 px on robustness seeds 0/204; the bank gets part of that, see the docs.)
 * **Estimation** (package :mod:`targetlock.estimation`): J by bounded RLS on frame-to-frame increments
