@@ -80,8 +80,8 @@ def test_selector_ignores_garbage_frames():
 
 
 def test_selector_switches_as_soon_as_it_judges_when_the_evidence_is_strong():
-    """With a lot of own motion (reversals on both axes every ~1.5 s) the first judgement (50 frames,
-    2.5 s of frames at 20 fps, confirmed 10 frames later) already finds the scope: the switch comes at
+    """With a lot of own motion (reversals on both axes every ~1.5 s) the first judgements (from 25
+    frames, 1.25 s of frames at 20 fps) already find the scope: the switch comes within a judgement of
     the first possible frame, not seconds later."""
     cands = scope_candidates(EndoscopeParams(), 32)
     truth = cands[12]
@@ -234,6 +234,28 @@ def test_a_few_stick_slip_frames_are_enough_to_switch_and_noise_is_not():
         assert sel.best == 1 and switched and switched[0] <= sel.min_frames + 2 * sel.every, (seed, switched)
         sel, switched = _stick_slip_frames(False, seed)
         assert sel.best == 0 and not switched, (seed, switched)
+
+
+def test_selector_judges_from_min_frames_and_twice_as_often_until_its_window_is_full():
+    """The first seconds after engaging are where a wrong model costs most: the first window is judged
+    at ``min_frames``, then every ``every_while_filling`` frames until ``window`` frames are in, then
+    every ``every`` frames."""
+    sel = ScopeSelector(4, DELAYS, window=60, every=10, every_while_filling=5, min_frames=20)
+    rng = np.random.default_rng(0)
+    judged_at = []
+    for i in range(1, 121):
+        before = sel.judged
+        sel.add(0.05 * i, rng.normal(0.0, 1.0, 2), rng.normal(0.0, 0.01, (DELAYS.size, 4, 2)), J)
+        if sel.judged > before:
+            judged_at.append(i)
+    assert judged_at == [20, 25, 30, 35, 40, 45, 50, 55, 60, 70, 80, 90, 100, 110, 120]
+
+
+@pytest.mark.parametrize("kw", [{"every": 0}, {"every_while_filling": 0}, {"min_frames": 1},
+                                {"min_frames": 121, "window": 120}])
+def test_selector_rejects_a_cadence_it_cannot_keep(kw):
+    with pytest.raises(ValueError, match="ScopeSelector"):
+        ScopeSelector(4, DELAYS, **kw)
 
 
 def test_selector_rejects_a_threshold_that_is_not_positive():
