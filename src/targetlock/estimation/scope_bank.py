@@ -124,7 +124,8 @@ class ScopeSelector:
         self.members = members
         self.delays = np.atleast_1d(np.asarray(delays, dtype=float))
         self.best = 0
-        self.every, self.every_while_filling, self.min_frames = every, every_while_filling, min_frames
+        self.window, self.min_frames = window, min_frames
+        self.every, self.every_while_filling = every, every_while_filling
         self.min_evidence = min_evidence
         self.confirm = confirm
         self._pending = (-1, 0)          # candidate found significantly better, in how many windows in a row
@@ -154,7 +155,7 @@ class ScopeSelector:
             return None
         self.frames.append((float(capture_time), offset, motions.reshape(-1, 2)))
         self._count += 1
-        step = self.every_while_filling if len(self.frames) < self.frames.maxlen else self.every
+        step = self.every_while_filling if len(self.frames) < self.window else self.every
         if self._count % step or len(self.frames) < self.min_frames:
             return None
         self.judged += 1
