@@ -53,3 +53,65 @@ def test_a_partial_oracle_hands_over_that_item_only_and_says_so():
     assert got["camera"].camera.fx == 350.0 and got["camera"].depth == nominal.depth
     for item, k in got.items():
         assert k.label.startswith(f"oracle {item} only"), k.label
+
+
+def _fitted(tmp_path, endoscope, name="fitted.toml"):
+    from targetlock.experiments.identify import preset_toml
+    path = tmp_path / name
+    path.write_text(preset_toml(endoscope, "looped-shaft", "identified on the bench"))
+    return str(path)
+
+
+def test_an_identified_scope_file_replaces_the_presets_endoscope_and_says_so(tmp_path):
+    # What `targetlock identify` writes (fitted.toml, [twin.endoscope]) is what the controller assumes.
+    p = plant()
+    fitted = dataclasses.replace(p.endoscope, mu_n=0.15, cable_slack=-0.0003)
+    cfg = RunConfig(twin=p, knowledge=KnowledgeConfig(endoscope_file=_fitted(tmp_path, fitted)))
+    k = build_controller(cfg, build_rig(cfg)).knowledge
+    assert k.endoscope == fitted and k.source == "nominal"
+    assert "fitted.toml" in k.label and k.latency == 0.4          # the rest stays nominal
+    (tmp_path / "partial.toml").write_text("[knowledge.endoscope]\ncable_slack = 0.0012\n")
+    k = resolve_knowledge(KnowledgeConfig(endoscope_file=str(tmp_path / "partial.toml")), p)
+    nominal = twin_config("calibrated").endoscope
+    assert k.endoscope == dataclasses.replace(nominal, cable_slack=0.0012)
+
+
+def test_the_truth_wins_over_an_identified_scope_file_only_when_asked_for(tmp_path):
+    p = plant()
+    path = _fitted(tmp_path, twin_config("uncalibrated").endoscope)
+    assert resolve_knowledge(KnowledgeConfig(source="oracle-endoscope", endoscope_file=path), p).endoscope == p.endoscope
+    assert resolve_knowledge(KnowledgeConfig(source="oracle-latency", endoscope_file=path), p).endoscope \
+        == twin_config("uncalibrated").endoscope
+
+
+@pytest.mark.parametrize("text, says", [
+    ("[knowledge.endoscope]\nmu_n = -5.0\n", "mu_n = -5.0 is out of range"),
+    ("[twin]\npreset = 'calibrated'\n", "no [knowledge.endoscope] or [twin.endoscope] table"),
+    ("knowledge = 3\n", "no [knowledge.endoscope] or [twin.endoscope] table"),
+    ("[[[", "not valid TOML")])
+def test_a_bad_scope_file_is_refused_naming_the_setting_and_the_file(tmp_path, text, says):
+    (tmp_path / "bad.toml").write_text(text)
+    with pytest.raises(ConfigError, match="knowledge.endoscope_file") as err:
+        resolve_knowledge(KnowledgeConfig(endoscope_file=str(tmp_path / "bad.toml")), plant())
+    assert says in str(err.value) and "bad.toml" in str(err.value)
+
+
+def test_a_missing_scope_file_is_one_clear_line(tmp_path):
+    from targetlock.errors import InputFileError
+    with pytest.raises(InputFileError, match="knowledge.endoscope_file = .*nope.toml: no such file"):
+        resolve_knowledge(KnowledgeConfig(endoscope_file=str(tmp_path / "nope.toml")), plant())
+
+
+def test_the_lock_holds_better_with_the_identified_scope_than_with_the_assumed_preset(tmp_path):
+    """Looped shaft at 3 cm: the lock assuming the calibrated preset against the same lock handed the
+    scope's identified parameters (measured: rms 98.7 -> 83.5 px over 20 s)."""
+    from targetlock.controllers import ControllerConfig
+    from targetlock.experiments.target_lock import run_target_lock
+    from targetlock.loop.runner import LoopConfig
+
+    twin = twin_config("looped-shaft", {"scene": {"distance": 0.03}})
+    base = RunConfig(twin=twin, controller=ControllerConfig(kind="adaptive"), loop=LoopConfig(seconds=20.0))
+    assumed = run_target_lock(base)
+    known = run_target_lock(dataclasses.replace(
+        base, knowledge=KnowledgeConfig(endoscope_file=_fitted(tmp_path, twin.endoscope))))
+    assert known["rms_px"] < 0.9 * assumed["rms_px"]
