@@ -229,3 +229,29 @@ def test_run_summary_counts_rejected_observations():
     s = run_target_lock(cfg)
     assert s["rejected_observations"] == s["rejected_by_reason"]["outside_image"] > 5
     assert np.isfinite(s["rms_px"])
+
+
+def test_a_run_of_the_self_calibrating_lock_leaves_the_scope_it_found_for_the_next_run(tmp_path):
+    """`adaptive` on a looped shaft: the run folder's identified_scope.toml holds the candidate scope it
+    steered with at the end; given as the next run's knowledge.endoscope_file, that run assumes it.
+    A controller that identifies no scope (PI) leaves no such file."""
+    import tomllib
+
+    from targetlock.controllers import KnowledgeConfig
+    from targetlock.model.twin import twin_config
+
+    twin = twin_config("looped-shaft", {"scene": {"distance": 0.03}})
+    cfg = RunConfig(twin=twin, controller=ControllerConfig(kind="adaptive"), loop=LoopConfig(seconds=12.0))
+    first = run_target_lock(cfg, RunFolder("run", cfg, tmp_path / "first"))
+    path = tmp_path / "first" / "identified_scope.toml"
+    assert first["identified_scope"] == str(path)
+    table = tomllib.loads(path.read_text())["knowledge"]["endoscope"]
+    assumed = twin_config("calibrated").endoscope
+    assert table["cable_slack"] != assumed.cable_slack or table["mu_n"] != assumed.mu_n   # it found another
+    nxt = dataclasses.replace(cfg, knowledge=KnowledgeConfig(endoscope_file=str(path)))
+    second = run_target_lock(nxt, RunFolder("run", nxt, tmp_path / "second"))
+    assert "identified_scope.toml" in second["knowledge"]
+    assert (tmp_path / "second" / "inputs" / "identified_scope.toml").is_file()
+    pi = dataclasses.replace(cfg, controller=ControllerConfig(kind="pi"))
+    summary = run_target_lock(pi, RunFolder("run", pi, tmp_path / "pi"))
+    assert "identified_scope" not in summary and not (tmp_path / "pi" / "identified_scope.toml").exists()

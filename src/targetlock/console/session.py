@@ -42,6 +42,7 @@ from ..rig.base import FrameLog
 from ..interfaces.safety import SafeDrives, SafetyConfig, SafetyTrip
 from ..loop.clock import WallClock
 from ..loop.runner import ControlLoop, Tick
+from ..model.endoscope import EndoscopeParams
 from ..model.scene import Scene, SceneParams
 from ..rig.base import Drives, Observation
 from ..vision.tracker import Tracker, TrackResult
@@ -93,6 +94,9 @@ class LockSwitch(Controller):
 
     def signals(self) -> dict[str, float]:
         return self.inner.signals()
+
+    def learned_endoscope(self) -> EndoscopeParams | None:
+        return self.inner.learned_endoscope()
 
     def _reset(self, motor: np.ndarray, t: float) -> None:
         self.inner.reset(motor, t)

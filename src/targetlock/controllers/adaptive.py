@@ -82,6 +82,7 @@ import math
 import numpy as np
 
 from ..estimation import DelayEstimator, DriftEstimator, JacobianEstimator, ScopeSelector, TipModel, prior_jacobian, scope_candidates
+from ..model.endoscope import EndoscopeParams
 from ..rig.base import Observation
 from .base import Controller, ControllerConfig
 from .knowledge import Knowledge
@@ -260,6 +261,10 @@ class AdaptiveController(Controller):
         if self.drift.offset_scatter > 0.5 * float(np.linalg.norm(push)) + 2.0:
             return np.zeros(2)
         return push
+
+    def learned_endoscope(self) -> EndoscopeParams | None:
+        """The candidate scope steering now (the assumed one until the selector found a better one)."""
+        return self.tip_model.endoscope if self.engaged_before else None
 
     def signals(self) -> dict[str, float]:
         """The estimated image Jacobian's direct terms (px per handle rad), the supervisor's trust

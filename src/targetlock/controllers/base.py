@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import ConfigError, param
+from ..model.endoscope import EndoscopeParams
 from ..rig.base import Observation
 from .knowledge import Knowledge
 
@@ -155,6 +156,11 @@ class Controller(abc.ABC):
     def signals(self) -> dict[str, float]:
         """Internal signals worth recording (e.g. the compensation), per axis."""
         return {}
+
+    def learned_endoscope(self) -> EndoscopeParams | None:
+        """The endoscope parameters this controller found steering best while it ran (e.g. ``adaptive``'s
+        candidate scope), for the next run's ``knowledge.endoscope_file``; None if it identifies none."""
+        return None
 
     @abc.abstractmethod
     def _reset(self, motor: np.ndarray, t: float) -> None: ...

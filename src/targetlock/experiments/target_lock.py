@@ -14,13 +14,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import param
+from ..config import param, to_dict
 from ..controllers import ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
 from ..loop.clock import SimClock, WallClock
 from ..loop.gate import ObservationGate
 from ..loop.runner import ControlLoop, LoopConfig, Tick
 from ..loop.signals import StopSignal, stop_on_signals
 from ..loop.stats import RunningStats
+from ..model.endoscope import EndoscopeParams
 from ..model.twin import TwinConfig
 from ..rig.base import FrameLog
 from ..recording import RunMcap
@@ -274,6 +275,18 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
     return summary
 
 
+def write_identified_scope(path, endoscope: EndoscopeParams, assumed: EndoscopeParams):
+    """Write ``endoscope`` (what the controller steered with at the end of the run) as a
+    ``[knowledge.endoscope]`` table for the next run's ``knowledge.endoscope_file``; returns ``path``."""
+    import tomli_w
+    same = "the same as the assumed one" if endoscope == assumed else "found by the lock, unlike the assumed one"
+    note = (f"The endoscope the lock steered with at the end of this run ({same}).\n"
+            "Use it next time: --set knowledge.endoscope_file='\"PATH_OF_THIS_FILE\"'")
+    text = "".join(f"# {line}\n" for line in note.splitlines()) + tomli_w.dumps({"knowledge": {"endoscope": to_dict(endoscope)}})
+    path.write_text(text)
+    return path
+
+
 def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
             hardware: bool, realtime: bool, vision, keep_rows: bool, stopped: BaseException | None) -> dict:
     """The summary of what was recorded (also of a run that was stopped), its plot and summary file."""
@@ -307,6 +320,10 @@ def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: R
         summary["_data"] = data
     if run is not None:
         summary["run_folder"] = str(run.path)
+        learned = rec.ctrl.learned_endoscope()
+        if learned is not None:
+            summary["identified_scope"] = str(write_identified_scope(run.file("identified_scope.toml"), learned,
+                                                                     rec.ctrl.knowledge.endoscope))
         run.write_summary({k: v for k, v in summary.items() if not k.startswith("_")})
         if data.shape[0]:
             plot_run(data, cfg, run.file("tracking.png"))
