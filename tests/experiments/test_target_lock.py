@@ -244,7 +244,7 @@ def test_a_run_of_the_self_calibrating_lock_leaves_the_scope_it_found_for_the_ne
     cfg = RunConfig(twin=twin, controller=ControllerConfig(kind="adaptive"), loop=LoopConfig(seconds=12.0))
     first = run_target_lock(cfg, RunFolder("run", cfg, tmp_path / "first"))
     path = tmp_path / "first" / "identified_scope.toml"
-    assert first["identified_scope"] == str(path)
+    assert first["identified_scope"] == path.name and path.is_file()
     table = tomllib.loads(path.read_text())["knowledge"]["endoscope"]
     assumed = twin_config("calibrated").endoscope
     assert table["cable_slack"] != assumed.cable_slack or table["mu_n"] != assumed.mu_n   # it found another

@@ -321,9 +321,9 @@ def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: R
     if run is not None:
         summary["run_folder"] = str(run.path)
         learned = rec.ctrl.learned_endoscope()
-        if learned is not None:
-            summary["identified_scope"] = str(write_identified_scope(run.file("identified_scope.toml"), learned,
-                                                                     rec.ctrl.knowledge.endoscope))
+        if learned is not None:   # named relative to the run folder: a re-run's summary stays the same
+            write_identified_scope(run.file("identified_scope.toml"), learned, rec.ctrl.knowledge.endoscope)
+            summary["identified_scope"] = "identified_scope.toml"
         run.write_summary({k: v for k, v in summary.items() if not k.startswith("_")})
         if data.shape[0]:
             plot_run(data, cfg, run.file("tracking.png"))
