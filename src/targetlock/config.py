@@ -232,6 +232,12 @@ def save_toml(cfg: Any, path: str | Path) -> None:
     Path(path).write_text(tomli_w.dumps(to_dict(cfg)), encoding="utf-8")
 
 
+def commented_toml(data: dict, note: str) -> str:
+    """TOML text of ``data`` under a comment header: each line of ``note`` as a ``#`` line."""
+    import tomli_w   # only needed when a config is written
+    return "".join(f"# {line}\n" for line in note.splitlines()) + tomli_w.dumps(data)
+
+
 def _replaced(cfg: Any, dotted: str, value: Any) -> Any:
     head, _, rest = dotted.partition(".")
     if head not in {f.name for f in fields(cfg)}:

@@ -264,7 +264,7 @@ class AdaptiveController(Controller):
 
     def learned_endoscope(self) -> EndoscopeParams | None:
         """The candidate scope steering now (the assumed one until the selector found a better one)."""
-        return self.tip_model.endoscope if self.engaged_before else None
+        return self.tip_model.endoscope if self.engaged else None
 
     def signals(self) -> dict[str, float]:
         """The estimated image Jacobian's direct terms (px per handle rad), the supervisor's trust

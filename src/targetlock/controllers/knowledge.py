@@ -26,8 +26,7 @@ from ..model.camera import CameraParams
 from ..model.endoscope import EndoscopeParams
 from ..model.twin import PRESETS, TwinConfig, merge, twin_config
 
-__all__ = ["KnowledgeConfig", "Knowledge", "resolve_knowledge", "nominal_knowledge", "load_endoscope_file",
-           "KNOWLEDGE_SOURCES"]
+__all__ = ["KnowledgeConfig", "Knowledge", "resolve_knowledge", "nominal_knowledge", "KNOWLEDGE_SOURCES"]
 
 ORACLE_ITEMS = ("endoscope", "latency", "depth", "camera")
 KNOWLEDGE_SOURCES = ("nominal", "oracle") + tuple(f"oracle-{item}" for item in ORACLE_ITEMS)
@@ -88,7 +87,7 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     endoscope = plant.endoscope if item == "endoscope" else twin_config(k.preset).endoscope
     from_file = k.endoscope_file if item != "endoscope" else ""
     if from_file:
-        endoscope = load_endoscope_file(from_file, endoscope)
+        endoscope = _load_endoscope_file(from_file, endoscope)
     fx, fy = (plant.camera.fx, plant.camera.fy) if item == "camera" else (k.fx, k.fy)
     camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
                                  cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps, fx=fx, fy=fy,
@@ -97,7 +96,7 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
                      source=k.source, preset=plant.preset if item == "endoscope" else k.preset, endoscope_file=from_file)
 
 
-def load_endoscope_file(path: str, base: EndoscopeParams) -> EndoscopeParams:
+def _load_endoscope_file(path: str, base: EndoscopeParams) -> EndoscopeParams:
     """``base`` with the endoscope table of the TOML file ``path`` applied: ``[knowledge.endoscope]``, or
     else ``[twin.endoscope]`` (``targetlock identify``'s ``fitted.toml``). ConfigError / InputFileError
     naming the setting and the file if it is missing, has no such table or a value out of range."""

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..config import ConfigError, from_dict, param, to_dict
+from ..config import ConfigError, commented_toml, from_dict, param, to_dict
 from ..model.drives import DriveParams
 from ..model.endoscope import EndoscopeParams, pack_params, simulate, static_gain
 from ..model.twin import TwinConfig
@@ -333,9 +333,7 @@ def identify(sweep: Sweep, start: EndoscopeParams, *, model_dt: float = 0.001, n
 
 def preset_toml(e: EndoscopeParams, base_preset: str, note: str) -> str:
     """A config file (TOML) that other commands accept with ``--config``: the twin's endoscope section."""
-    import tomli_w
-    body = tomli_w.dumps({"twin": {"preset": base_preset, "endoscope": to_dict(e)}})
-    return "".join(f"# {line}\n" for line in note.splitlines()) + body
+    return commented_toml({"twin": {"preset": base_preset, "endoscope": to_dict(e)}}, note)
 
 
 def plot_fit(sweep: Sweep, fitted_tip: np.ndarray, path) -> None:

@@ -11,10 +11,11 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from ..config import param, to_dict
+from ..config import commented_toml, param, to_dict
 from ..controllers import ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
 from ..loop.clock import SimClock, WallClock
 from ..loop.gate import ObservationGate
@@ -275,16 +276,13 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
     return summary
 
 
-def write_identified_scope(path, endoscope: EndoscopeParams, assumed: EndoscopeParams):
+def write_identified_scope(path: Path, endoscope: EndoscopeParams, assumed: EndoscopeParams) -> None:
     """Write ``endoscope`` (what the controller steered with at the end of the run) as a
-    ``[knowledge.endoscope]`` table for the next run's ``knowledge.endoscope_file``; returns ``path``."""
-    import tomli_w
+    ``[knowledge.endoscope]`` table for the next run's ``knowledge.endoscope_file``."""
     same = "the same as the assumed one" if endoscope == assumed else "found by the lock, unlike the assumed one"
     note = (f"The endoscope the lock steered with at the end of this run ({same}).\n"
             "Use it next time: --set knowledge.endoscope_file='\"PATH_OF_THIS_FILE\"'")
-    text = "".join(f"# {line}\n" for line in note.splitlines()) + tomli_w.dumps({"knowledge": {"endoscope": to_dict(endoscope)}})
-    path.write_text(text)
-    return path
+    path.write_text(commented_toml({"knowledge": {"endoscope": to_dict(endoscope)}}, note))
 
 
 def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
