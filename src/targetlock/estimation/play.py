@@ -14,7 +14,10 @@ J handed in cannot be "explained" by a wider play or a shift that hides the moti
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 __all__ = ["play", "high_pass", "fit_rough", "rough_residuals"]
 
@@ -66,19 +69,85 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
     (k, n-1) (px) and the rows kept (k, n-1) (1 kept, 0 dropped as an outlier)."""
     # Frame increments less their running mean over ``span`` frames: the target's own velocity, slowly
     # varying, drops out; our motion's starts, stops and reversals stay.
-    dx = high_pass(np.diff(x, axis=0), span, 0)       # (n-1, 2)
-    dp = high_pass(np.diff(p, axis=1), span, 1)       # (k, n-1, 2)
-    w = np.ones(dp.shape[:2])
-    for _ in range(2):
-        wdp = np.transpose(dp * w[..., None], (0, 2, 1))          # (k, 2, n-1)
-        g = wdp @ dp
-        lam = ridge * 0.5 * np.trace(g, axis1=1, axis2=2)[:, None, None] + 1e-12
-        g = g + lam * np.eye(2)
-        b = wdp @ dx + lam * np.asarray(prior, dtype=float).T   # (k, 2 [p], 2 [x])
-        jt = np.linalg.solve(g, b)                    # J transposed per candidate
-        r = dx[None] - dp @ jt                        # (k, n-1, 2)
-        rn = np.sqrt(np.sum(r * r, axis=-1))
-        w = (rn <= 3.0 * np.median(rn, axis=1, keepdims=True) + 1e-12).astype(float)
-        if common_outliers:
-            w = np.broadcast_to(np.any(w > 0, axis=0), w.shape).astype(float)
+    dx = high_pass(np.diff(np.asarray(x, dtype=float), axis=0), span, 0)       # (n-1, 2)
+    dp = _high_passed_increments(np.ascontiguousarray(p, dtype=float), span)    # (k, n-1, 2)
+    jt, rn, w = _fit_increments(np.ascontiguousarray(dx), dp,
+                                np.ascontiguousarray(np.asarray(prior, dtype=float)), float(ridge),
+                                bool(common_outliers))
     return np.transpose(jt, (0, 2, 1)), rn, w
+
+
+@njit(cache=True)
+def _high_passed_increments(p: np.ndarray, span: int) -> np.ndarray:
+    """:func:`high_pass` of the frame increments of every candidate's motion ``p`` (k, n, 2), compiled (the
+    numpy version makes a dozen (k, n) temporaries)."""
+    k, n = p.shape[0], p.shape[1] - 1
+    out = np.empty((k, n, 2))
+    c = np.empty(n + 1)
+    for m in range(k):
+        for a in range(2):
+            c[0] = 0.0
+            for i in range(n):
+                c[i + 1] = c[i] + (p[m, i + 1, a] - p[m, i, a])
+            for i in range(n):
+                lo = max(i - span // 2, 0)
+                hi = min(i + span // 2 + 1, n)
+                out[m, i, a] = (p[m, i + 1, a] - p[m, i, a]) - (c[hi] - c[lo]) / (hi - lo)
+    return out
+
+
+@njit(cache=True)
+def _fit_increments(dx: np.ndarray, dp: np.ndarray, prior: np.ndarray, ridge: float,
+                    common: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per candidate c: the ridge-pulled 2x2 least squares ``dx ≈ dp[c]·Jᵀ`` over the kept rows, its residual
+    norms, and the rows kept (within 3x the candidate's median residual; with ``common``, the rows any
+    candidate keeps); fitted twice, the second time on the kept rows. Compiled: the selector fits
+    (delays × candidates) of them every few frames, and numpy's batched 2x2 solves and medians cost ~10 ms."""
+    k, n = dp.shape[0], dp.shape[1]
+    jt = np.empty((k, 2, 2))
+    rn = np.empty((k, n))
+    w = np.ones((k, n))
+    for _ in range(2):
+        for c in range(k):
+            g00 = g01 = g11 = 0.0
+            b00 = b01 = b10 = b11 = 0.0
+            for i in range(n):
+                wi = w[c, i]
+                p0, p1 = dp[c, i, 0], dp[c, i, 1]
+                g00 += wi * p0 * p0
+                g01 += wi * p0 * p1
+                g11 += wi * p1 * p1
+                b00 += wi * p0 * dx[i, 0]
+                b01 += wi * p0 * dx[i, 1]
+                b10 += wi * p1 * dx[i, 0]
+                b11 += wi * p1 * dx[i, 1]
+            lam = ridge * 0.5 * (g00 + g11) + 1e-12
+            g00 += lam
+            g11 += lam
+            b00 += lam * prior[0, 0]       # b = Σ w·dp dxᵀ + λ·Jpriorᵀ, rows: motion axis, columns: image axis
+            b01 += lam * prior[1, 0]
+            b10 += lam * prior[0, 1]
+            b11 += lam * prior[1, 1]
+            det = g00 * g11 - g01 * g01
+            j00 = (g11 * b00 - g01 * b10) / det
+            j01 = (g11 * b01 - g01 * b11) / det
+            j10 = (g00 * b10 - g01 * b00) / det
+            j11 = (g00 * b11 - g01 * b01) / det
+            jt[c, 0, 0], jt[c, 0, 1], jt[c, 1, 0], jt[c, 1, 1] = j00, j01, j10, j11
+            for i in range(n):
+                r0 = dx[i, 0] - dp[c, i, 0] * j00 - dp[c, i, 1] * j10
+                r1 = dx[i, 1] - dp[c, i, 0] * j01 - dp[c, i, 1] * j11
+                rn[c, i] = math.sqrt(r0 * r0 + r1 * r1)
+            limit = 3.0 * np.median(rn[c]) + 1e-12
+            for i in range(n):
+                w[c, i] = 1.0 if rn[c, i] <= limit else 0.0
+        if common:
+            for i in range(n):
+                keep = 0.0
+                for c in range(k):
+                    if w[c, i] > 0.0:
+                        keep = 1.0
+                        break
+                for c in range(k):
+                    w[c, i] = keep
+    return jt, rn, w
