@@ -59,3 +59,33 @@ def test_target_path_switch_is_continuous_and_nudge_moves_by_pixels():
     assert np.allclose(scene.target_position(9.0) - p, [30.0 * d / cam.fx, 0.0, 0.0])
     with pytest.raises(ConfigError, match="target path = 'spiral' is not allowed"):
         scene.set_path("spiral", 9.0)
+
+
+def test_tuning_and_recording_keep_the_scope_the_running_lock_identified(tmp_path):
+    """The console's tuning replaces the controller on the same scope: when the running `adaptive` lock
+    has found a candidate scope other than the assumed one, the new controller (here pi-smith, which
+    models the scope too) assumes that one and says so; a recording leaves it in identified_scope.toml
+    for the next run, as `targetlock run` does."""
+    import tomllib
+    from pathlib import Path
+
+    from targetlock.config import from_dict, to_dict
+    from targetlock.console.session import ConsoleSession
+    from targetlock.experiments.target_lock import RunConfig
+
+    cfg = from_dict(RunConfig, {"controller": {"kind": "adaptive"}, "twin": {"scene": {"path": "static"}}})
+    session = ConsoleSession(cfg, runs_root=str(tmp_path))
+    adaptive = session.switch.inner
+    adaptive.reset(np.zeros(2), 0.0)
+    found = 3
+    adaptive.tip_model.member = adaptive.selector.best = found      # what the selector switches to
+    identified = adaptive.tip_model.endoscope
+    assert identified != adaptive.knowledge.endoscope
+    session.tune({"kind": "pi-smith"})
+    new = session.switch._pending
+    assert new is not None and new.knowledge.endoscope == identified
+    assert "identified by the running lock" in new.knowledge.label
+    session.record_start()
+    summary = session.record_stop()
+    path = Path(summary["run_folder"]) / summary["identified_scope"]
+    assert tomllib.loads(path.read_text())["knowledge"]["endoscope"] == to_dict(identified)

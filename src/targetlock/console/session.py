@@ -37,7 +37,8 @@ import numpy as np
 from ..config import ConfigError, from_dict, to_dict, validate
 from ..controllers.base import CONTROLLERS, Controller
 from ..experiments.runfolder import RunFolder
-from ..experiments.target_lock import COLUMNS, RunConfig, RunRecorder, build_controller, build_rig, plot_run
+from ..experiments.target_lock import (COLUMNS, RunConfig, RunRecorder, build_controller, build_rig, plot_run,
+                                       save_identified_scope)
 from ..rig.base import FrameLog
 from ..interfaces.safety import SafeDrives, SafetyConfig, SafetyTrip
 from ..loop.clock import WallClock
@@ -107,7 +108,7 @@ class LockSwitch(Controller):
             want = self._want_locked
         if pending is not None:
             pending.reset(self.setpoint, t)  # from the current setpoint: no jump
-            self.inner, self.cfg = pending, pending.cfg
+            self.inner, self.cfg, self.knowledge = pending, pending.cfg, pending.knowledge
         if want and not self.locked:
             self.inner.reset(self.setpoint, t)  # engage where the handle is held
         self.locked = want
@@ -475,7 +476,8 @@ class ConsoleSession:
         data.update(changes)
         new_cfg = validate(from_dict(type(self.switch.cfg), data, prefix="controller."), prefix="controller.")
         cfg = dataclasses.replace(self.cfg, controller=new_cfg)
-        ctrl = build_controller(cfg, self.rig)
+        # The new controller assumes the scope the running lock identified, if it did: same scope, new gains.
+        ctrl = build_controller(cfg, self.rig, identified=self.switch.learned_endoscope())
         self._warm_up(ctrl)
         self.switch.replace(ctrl)
         self.cfg = cfg
@@ -532,6 +534,7 @@ class ConsoleSession:
         if len(data):
             plot_run(data, self.cfg, run.file("tracking.png"))
         summary["run_folder"] = str(run.path)
+        save_identified_scope(run, self.switch.inner, summary)
         run.write_summary(summary)
         run.close()
         self.last_record = summary

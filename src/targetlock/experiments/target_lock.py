@@ -6,6 +6,7 @@ after ``loop.metrics_after`` seconds while the target is in view.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import sys
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import commented_toml, param, to_dict
-from ..controllers import ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
+from ..controllers import Controller, ControllerConfig, KnowledgeConfig, make_controller, resolve_knowledge
 from ..loop.clock import SimClock, WallClock
 from ..loop.gate import ObservationGate
 from ..loop.runner import ControlLoop, LoopConfig, Tick
@@ -33,6 +34,11 @@ from .runfolder import RunFolder
 __all__ = ["RunConfig", "build_rig", "run_target_lock", "plot_run", "COLUMNS"]
 
 log = logging.getLogger(__name__)
+
+IDENTIFIED_SCOPE_FILE = "identified_scope.toml"
+"""The run folder's file with the endoscope an identifying controller (``adaptive``) found."""
+IDENTIFIED_WHILE_RUNNING = "(identified by the running lock)"
+"""The knowledge label's endoscope source when the console's tuning carries the lock's scope over."""
 
 COLUMNS = ["t", "err_x", "err_y", "err", "obs_x", "obs_y", "obs_valid", "obs_age", "motor_x_deg", "motor_y_deg",
            "setpoint_x_deg", "setpoint_y_deg", "tip_x_deg", "tip_y_deg", "sig_x", "sig_y"]
@@ -60,14 +66,19 @@ def build_rig(cfg: RunConfig, frame_hook=None) -> SimulatedRig:
                         stamp_latency=resolve_knowledge(cfg.knowledge, cfg.twin).latency)
 
 
-def build_controller(cfg: RunConfig, rig):
+def build_controller(cfg: RunConfig, rig, *, identified: EndoscopeParams | None = None):
     """The configured controller with the rig's drive limits and ``cfg.knowledge`` — the nominal
-    assumptions, never the simulated plant's truth unless ``knowledge.source = "oracle"``."""
+    assumptions, never the simulated plant's truth unless ``knowledge.source = "oracle"``. ``identified``:
+    an endoscope a running lock found (:meth:`Controller.learned_endoscope`), assumed instead of the
+    knowledge's (the console's tuning replaces the controller on the same scope)."""
     drives = rig.drives
     lo, hi = drives.limits
     rpt = drives.rad_per_tick
+    knowledge = resolve_knowledge(cfg.knowledge, cfg.twin)
+    if identified is not None and identified != knowledge.endoscope:
+        knowledge = dataclasses.replace(knowledge, endoscope=identified, endoscope_file=IDENTIFIED_WHILE_RUNNING)
     return make_controller(cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt, control_dt=1.0 / cfg.loop.rate,
-                           knowledge=resolve_knowledge(cfg.knowledge, cfg.twin), model_dt=cfg.twin.model_dt)
+                           knowledge=knowledge, model_dt=cfg.twin.model_dt)
 
 
 class _Thinned:
@@ -276,13 +287,20 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
     return summary
 
 
-def write_identified_scope(path: Path, endoscope: EndoscopeParams, assumed: EndoscopeParams) -> None:
-    """Write ``endoscope`` (what the controller steered with at the end of the run) as a
-    ``[knowledge.endoscope]`` table for the next run's ``knowledge.endoscope_file``."""
-    same = "the same as the assumed one" if endoscope == assumed else "found by the lock, unlike the assumed one"
+def save_identified_scope(run: RunFolder, ctrl: Controller, summary: dict) -> None:
+    """If ``ctrl`` identified an endoscope, write it (what it steered with at the end of the run) into the
+    run folder as ``identified_scope.toml``, a ``[knowledge.endoscope]`` table for the next run's
+    ``knowledge.endoscope_file``, and name the file in ``summary`` (relative to the folder: a re-run's
+    summary stays the same). ``targetlock run`` and the console's recordings both do."""
+    endoscope = ctrl.learned_endoscope()
+    if endoscope is None:
+        return
+    same = "the same as the assumed one" if endoscope == ctrl.knowledge.endoscope else \
+        "found by the lock, unlike the assumed one"
     note = (f"The endoscope the lock steered with at the end of this run ({same}).\n"
             "Use it next time: --set knowledge.endoscope_file='\"PATH_OF_THIS_FILE\"'")
-    path.write_text(commented_toml({"knowledge": {"endoscope": to_dict(endoscope)}}, note))
+    run.file(IDENTIFIED_SCOPE_FILE).write_text(commented_toml({"knowledge": {"endoscope": to_dict(endoscope)}}, note))
+    summary["identified_scope"] = IDENTIFIED_SCOPE_FILE
 
 
 def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: RunFolder | None, *, wall: float,
@@ -318,10 +336,7 @@ def _finish(cfg: RunConfig, rec: RunRecorder, rig, gate: ObservationGate, run: R
         summary["_data"] = data
     if run is not None:
         summary["run_folder"] = str(run.path)
-        learned = rec.ctrl.learned_endoscope()
-        if learned is not None:   # named relative to the run folder: a re-run's summary stays the same
-            write_identified_scope(run.file("identified_scope.toml"), learned, rec.ctrl.knowledge.endoscope)
-            summary["identified_scope"] = "identified_scope.toml"
+        save_identified_scope(run, rec.ctrl, summary)
         run.write_summary({k: v for k, v in summary.items() if not k.startswith("_")})
         if data.shape[0]:
             plot_run(data, cfg, run.file("tracking.png"))
