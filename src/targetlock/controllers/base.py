@@ -70,7 +70,7 @@ class ControllerConfig:
                                        doc="adaptive: fraction of a clear, steady drift of the target's lag that is led (0: none)")
     adaptive_dead_travel: float = param(0.8, lo=0.0, hi=1.0,
                                         doc="adaptive: fraction of the modelled dead travel (slack, friction band) crossed at once, at most the step the offset asks for (0: none)")
-    adaptive_candidates: int = param(32, lo=1, hi=256,
+    adaptive_candidates: int = param(64, lo=1, hi=256,
                                      doc="adaptive: candidate endoscopes run around the assumed one, the one that best explains the image steering (1: the assumed only)")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,

@@ -109,8 +109,8 @@ class ScopeSelector:
     it is chosen at 2.6-9 s, and a step at engaging is over by then. On 22 random sets of 60 cases, mean
     of the medians: from 50 frames every 10, 26.70 px; from 25, every 5 while filling, 26.20; every 5
     throughout too, 26.22 (and no case lost where PI keeps it); from 15 frames every 3 while filling,
-    25.85; from 10 every 2, 25.86. One judgement costs ~4 ms (the compiled fit, 13 delays × 32 candidates
-    × 120 frames). See docs/research.md."""
+    25.85; from 10 every 2, 25.86. One judgement costs ~4 ms for 32 candidates at 13 delays over 120
+    frames (the compiled fit); ``adaptive`` runs 64 (25.85 -> 25.54 px). See docs/research.md."""
 
     def __init__(self, members: int, delays: np.ndarray, *, window: int = 120, every: int = 5,
                  every_while_filling: int = 3, min_frames: int = 15, min_evidence: float = 24.0,
