@@ -238,3 +238,28 @@ def test_a_second_engagement_on_a_scope_unlike_the_assumed_one_holds_the_target_
     assert c.tip_model.member != 0                     # it found a scope other than the assumed one
     c, second = engage(c)
     assert second < 0.95 * first
+
+
+def _robustness_case(tmp_path, seed: int, index: int, hold: float):
+    """Robustness benchmark case ``index`` of set ``seed`` for ``adaptive`` with ``adaptive_hunt_hold``."""
+    from targetlock.experiments.robustness import case_config, draw_cases, write_waypoints
+
+    case = draw_cases(60, seed)[index]
+    path = tmp_path / f"case{seed}-{index}.csv"
+    write_waypoints(case, path)
+    cfg = case_config(case, "adaptive", path, 12.0, seed)
+    return dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, adaptive_hunt_hold=hold))
+
+
+def test_a_hunt_about_a_resting_target_is_stopped_where_it_is(tmp_path):
+    """Robustness set 1 case 44: a move that stops, calibrated-family scope at 3 cm. Correcting the last
+    4-5 px takes a reversal through the dead band, and the tip's stick-slip then jumps 12 px to the other
+    side: without the hold the target swings about the centre to the end. With it, the image is still
+    over the last 3 s and the offset left is within the hunt's extent."""
+    from targetlock.experiments.robustness import score_run
+
+    hunting = score_run(_robustness_case(tmp_path, 1, 44, 0.0))
+    held = score_run(_robustness_case(tmp_path, 1, 44, 15.0))
+    assert hunting["rest_motion_px"] > 4.0
+    assert held["rest_motion_px"] < 1.0 and held["rest_rms_px"] < hunting["rest_rms_px"]
+    assert held["rms_px"] < hunting["rms_px"]

@@ -72,6 +72,8 @@ class ControllerConfig:
                                         doc="adaptive: fraction of the modelled dead travel (slack, friction band) crossed at once, at most the step the offset asks for (0: none)")
     adaptive_candidates: int = param(64, lo=1, hi=256,
                                      doc="adaptive: candidate endoscopes run around the assumed one, the one that best explains the image steering (1: the assumed only)")
+    adaptive_hunt_hold: float = param(15.0, unit="px", lo=0.0, hi=100.0,
+                                      doc="adaptive: largest offset left alone on an image axis where the lock hunts about a resting target (0: never)")
     max_rate: float = param(1.6, unit="rad/s", lo=0.01, hi=100.0, doc="setpoint rate limit")
     max_frame_gap: float = param(0.1, unit="s", lo=0.001, hi=10.0,
                                  doc="longest frame interval integrated at once (after a loss, resume smoothly)")

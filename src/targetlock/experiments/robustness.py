@@ -42,7 +42,7 @@ from ..model.twin import PRESETS, twin_config
 from ..rig.simulated import ObservationNoise
 from .target_lock import RunConfig, run_target_lock
 
-__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
+__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "write_waypoints", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
            "format_table", "bench_robustness"]
 
 MOTIONS = ("smooth", "stops", "move", "drift", "rotation", "step")
@@ -153,6 +153,14 @@ def draw_cases(n: int, seed: int, seconds: float = 12.0) -> list[Case]:
     return cases
 
 
+def write_waypoints(case: Case, path: Path) -> None:
+    """The case's target path as the waypoints CSV its run config names (t s, x y z m)."""
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "x", "y", "z"])
+        w.writerows(case.waypoints.tolist())
+
+
 def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int) -> RunConfig:
     """The run of ``controller`` on ``case``: a controller kind, with ``+source`` a knowledge source
     (:data:`~targetlock.controllers.knowledge.KNOWLEDGE_SOURCES`, e.g. ``adaptive+oracle`` for the
@@ -208,10 +216,7 @@ def run_robustness(n_cases: int = 60, seed: int = 0, controllers: tuple[str, ...
         configs = []
         for case in cases:
             path = Path(tmp) / f"case{case.index}.csv"
-            with path.open("w", newline="") as fh:
-                w = csv.writer(fh)
-                w.writerow(["t", "x", "y", "z"])
-                w.writerows(case.waypoints.tolist())
+            write_waypoints(case, path)
             configs.append([case_config(case, c, path, seconds, seed) for c in controllers])
         if workers:
             from .sweep import dask_client
