@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["play", "high_pass", "fit_rough", "rough_residuals"]
+__all__ = ["play", "fit_rough", "rough_residuals"]
 
 
 def play(m: np.ndarray, widths: np.ndarray, start: float | None = None) -> np.ndarray:
@@ -34,16 +34,6 @@ def play(m: np.ndarray, widths: np.ndarray, start: float | None = None) -> np.nd
         y = np.minimum(np.maximum(y, u - half), u + half)
         out[k] = y
     return out
-
-
-def high_pass(z: np.ndarray, span: int, axis: int) -> np.ndarray:
-    """``z`` minus its centred moving average over ``span`` samples along ``axis`` (edges: shorter average)."""
-    z = np.moveaxis(z, axis, -1)
-    c = np.cumsum(np.concatenate([np.zeros(z.shape[:-1] + (1,)), z], axis=-1), axis=-1)
-    n = z.shape[-1]
-    lo = np.clip(np.arange(n) - span // 2, 0, n)
-    hi = np.clip(np.arange(n) + span // 2 + 1, 0, n)
-    return np.moveaxis(z - (c[..., hi] - c[..., lo]) / (hi - lo), -1, axis)
 
 
 def fit_rough(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: float = 0.3,
@@ -69,8 +59,8 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
     (k, n-1) (px) and the rows kept (k, n-1) (1 kept, 0 dropped as an outlier)."""
     # Frame increments less their running mean over ``span`` frames: the target's own velocity, slowly
     # varying, drops out; our motion's starts, stops and reversals stay.
-    dx = high_pass(np.diff(np.asarray(x, dtype=float), axis=0), span, 0)       # (n-1, 2)
-    dp = _high_passed_increments(np.ascontiguousarray(p, dtype=float), span)    # (k, n-1, 2)
+    dx = _high_passed_increments(np.ascontiguousarray(np.asarray(x, dtype=float)[None]), span)[0]   # (n-1, 2)
+    dp = _high_passed_increments(np.ascontiguousarray(p, dtype=float), span)                          # (k, n-1, 2)
     jt, rn, w = _fit_increments(np.ascontiguousarray(dx), dp,
                                 np.ascontiguousarray(np.asarray(prior, dtype=float)), float(ridge),
                                 bool(common_outliers))
@@ -79,8 +69,9 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
 
 @njit(cache=True)
 def _high_passed_increments(p: np.ndarray, span: int) -> np.ndarray:
-    """:func:`high_pass` of the frame increments of every candidate's motion ``p`` (k, n, 2), compiled (the
-    numpy version makes a dozen (k, n) temporaries)."""
+    """The frame increments of every candidate's motion ``p`` (k, n, 2) less their centred moving average
+    over ``span`` increments (shorter at the ends): (k, n-1, 2). Compiled (in numpy it took a dozen
+    (k, n) temporaries)."""
     k, n = p.shape[0], p.shape[1] - 1
     out = np.empty((k, n, 2))
     c = np.empty(n + 1)
