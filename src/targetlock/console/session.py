@@ -534,7 +534,7 @@ class ConsoleSession:
         if len(data):
             plot_run(data, self.cfg, run.file("tracking.png"))
         summary["run_folder"] = str(run.path)
-        save_identified_scope(run, self.switch.inner, summary)
+        save_identified_scope(run, self.switch, summary)
         run.write_summary(summary)
         run.close()
         self.last_record = summary

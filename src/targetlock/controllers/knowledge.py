@@ -57,7 +57,7 @@ class Knowledge:
     depth: float                  # m
     source: str                   # one of KNOWLEDGE_SOURCES
     preset: str                   # the endoscope preset these parameters came from
-    endoscope_file: str = ""      # the file that overrode the preset's endoscope parameters, if any
+    endoscope_from: str = ""      # what overrode the preset's endoscope parameters, if anything (a file's name)
 
     @property
     def latency(self) -> float:
@@ -68,7 +68,7 @@ class Knowledge:
         """One line saying which knowledge this is (for summaries and tables)."""
         if self.source == "oracle":
             return "oracle (the plant's true parameters)"
-        scope = f"preset {self.preset}" + (f" + {Path(self.endoscope_file).name}" if self.endoscope_file else "")
+        scope = f"preset {self.preset}" + (f" + {self.endoscope_from}" if self.endoscope_from else "")
         nominal = f"{scope}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, f {self.camera.fx:g} px"
         if self.source.startswith("oracle-"):
             item = self.source.removeprefix("oracle-")
@@ -93,7 +93,8 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
                                  cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps, fx=fx, fy=fy,
                                  latency=plant.camera.latency if item == "latency" else k.latency)
     return Knowledge(endoscope=endoscope, camera=camera, depth=plant.scene.distance if item == "depth" else k.depth,
-                     source=k.source, preset=plant.preset if item == "endoscope" else k.preset, endoscope_file=from_file)
+                     source=k.source, preset=plant.preset if item == "endoscope" else k.preset,
+                     endoscope_from=Path(from_file).name if from_file else "")
 
 
 def _load_endoscope_file(path: str, base: EndoscopeParams) -> EndoscopeParams:

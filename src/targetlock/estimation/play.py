@@ -59,11 +59,9 @@ def rough_residuals(x: np.ndarray, p: np.ndarray, prior: np.ndarray, ridge: floa
     (k, n-1) (px) and the rows kept (k, n-1) (1 kept, 0 dropped as an outlier)."""
     # Frame increments less their running mean over ``span`` frames: the target's own velocity, slowly
     # varying, drops out; our motion's starts, stops and reversals stay.
-    dx = _high_passed_increments(np.ascontiguousarray(np.asarray(x, dtype=float)[None]), span)[0]   # (n-1, 2)
-    dp = _high_passed_increments(np.ascontiguousarray(p, dtype=float), span)                          # (k, n-1, 2)
-    jt, rn, w = _fit_increments(np.ascontiguousarray(dx), dp,
-                                np.ascontiguousarray(np.asarray(prior, dtype=float)), float(ridge),
-                                bool(common_outliers))
+    dx = _high_passed_increments(np.ascontiguousarray(x, dtype=float)[None], span)[0]    # (n-1, 2)
+    dp = _high_passed_increments(np.ascontiguousarray(p, dtype=float), span)               # (k, n-1, 2)
+    jt, rn, w = _fit_increments(dx, dp, np.ascontiguousarray(prior, dtype=float), float(ridge), bool(common_outliers))
     return np.transpose(jt, (0, 2, 1)), rn, w
 
 

@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 IDENTIFIED_SCOPE_FILE = "identified_scope.toml"
 """The run folder's file with the endoscope an identifying controller (``adaptive``) found."""
-IDENTIFIED_WHILE_RUNNING = "(identified by the running lock)"
+IDENTIFIED_WHILE_RUNNING = "identified by the running lock"
 """The knowledge label's endoscope source when the console's tuning carries the lock's scope over."""
 
 COLUMNS = ["t", "err_x", "err_y", "err", "obs_x", "obs_y", "obs_valid", "obs_age", "motor_x_deg", "motor_y_deg",
@@ -76,7 +76,7 @@ def build_controller(cfg: RunConfig, rig, *, identified: EndoscopeParams | None 
     rpt = drives.rad_per_tick
     knowledge = resolve_knowledge(cfg.knowledge, cfg.twin)
     if identified is not None and identified != knowledge.endoscope:
-        knowledge = dataclasses.replace(knowledge, endoscope=identified, endoscope_file=IDENTIFIED_WHILE_RUNNING)
+        knowledge = dataclasses.replace(knowledge, endoscope=identified, endoscope_from=IDENTIFIED_WHILE_RUNNING)
     return make_controller(cfg.controller, rad_per_tick=rpt, lower=lo * rpt, upper=hi * rpt, control_dt=1.0 / cfg.loop.rate,
                            knowledge=knowledge, model_dt=cfg.twin.model_dt)
 
