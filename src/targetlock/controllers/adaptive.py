@@ -228,8 +228,8 @@ class AdaptiveController(Controller):
         while self.recent[0][0] < c - HUNT_WINDOW:
             self.recent.popleft()
         self.hold[np.abs(x) > HUNT_RELEASE * self.hold] = 0.0
-        if len(self.recent) < 10 or c - self.recent[0][0] < 0.75 * HUNT_WINDOW:
-            return
+        if self.hold.all() or len(self.recent) < 10 or c - self.recent[0][0] < 0.75 * HUNT_WINDOW:
+            return                        # both axes held already, or too short a history to judge
         xs = np.array([r[1] for r in self.recent])
         for a in (0, 1):
             above, below = float(xs[:, a].max()), float(-xs[:, a].min())
