@@ -88,10 +88,10 @@ TRACKING = [("calibrated", 0.05, 0.5, 0.0), ("calibrated", 0.015, 0.3, 0.02), ("
             ("looped-shaft", 0.05, 0.3, 0.0)]
 
 
-def track(preset, distance, latency, jitter, noise=None, truth=None, jacobian="rls"):
+def track(preset, distance, latency, jitter, noise=None, truth=None, jacobian="rls", jac_kw=None):
     twin = make_twin(preset, distance, latency=latency, jitter=jitter, size=1.0)
     lock = Lock(twin, noise=noise or ObservationNoise(noise_px=0.2), probe=probe(), loop_gain=0.8, scheduled=False,
-                truth=truth, jacobian=jacobian)
+                truth=truth, jacobian=jacobian, jac_kw=jac_kw)
     return twin, lock, lock.run(30.0)
 
 
@@ -109,11 +109,13 @@ def test_tracking_finds_the_delay_within_one_frame(preset, distance, latency, ji
 def test_tracking_finds_the_backlash_within_20_percent_in_most_runs(preset, distance, latency, jitter):
     """Per axis, at the bend of the start, in at least 2 of 3 runs (noise seeds); always within bounds.
     Measured over 5 seeds: calibrated 1.5 cm within 4 % in all; 5 cm within 9 % in 4, one +78 % on y;
-    looped shaft within 17 % in 4, one -31 % on x; 12 cm (not asserted) within 12 % in 4, one +29 %."""
+    looped shaft within 17 % in 4, one -31 % on x; 12 cm (not asserted) within 12 % in 4, one +29 %.
+    With the Jacobian the fit asks for: not grown on break-free jumps (``BacklashFitEstimator``)."""
     truth = sweep_truth(make_twin(preset, distance, latency=latency, jitter=jitter))
     good = 0
     for seed in range(3):
-        twin, lock, trace = track(preset, distance, latency, jitter, noise=ObservationNoise(noise_px=0.2, seed=seed))
+        twin, lock, trace = track(preset, distance, latency, jitter, noise=ObservationNoise(noise_px=0.2, seed=seed),
+                                  jac_kw={"growth_ratio": math.inf})
         widths = np.array([lock.backlash.axis_width(a, 0.3) for a in range(2)])
         good += bool(np.all(np.abs(widths / truth.width - 1.0) <= 0.2))
         assert lock.backlash.reversals >= 4

@@ -74,7 +74,8 @@ class JacobianEstimator:
 
     def __init__(self, prior: np.ndarray, *, forgetting: float = 0.97, prior_weight: float = 1e-4,
                  sv_min: float = 50.0, sv_max: float = 8000.0, min_motion: float = 1e-3, huber: float = 3.0,
-                 max_change: float = 0.1, min_image_motion: float = 3.0, max_coupling: float = 0.5) -> None:
+                 max_change: float = 0.1, min_image_motion: float = 3.0, max_coupling: float = 0.5,
+                 max_growth: float = 0.6, growth_ratio: float = 1.2) -> None:
         self.j = np.array(prior, dtype=float)
         self.prior = self.j.copy()
         self.max_coupling = max_coupling
@@ -84,6 +85,11 @@ class JacobianEstimator:
         self.sv_min, self.sv_max = sv_min, sv_max
         self.min_motion = min_motion
         self.max_change = max_change                       # largest relative change of J per update
+        # A pair whose image moved clearly further along the predicted motion than J predicts (more
+        # than ``growth_ratio`` times, little sideways) says J is too small: it is neither clipped nor
+        # rejected as an outlier, and J may grow by ``max_growth`` on it (see :meth:`update`).
+        self.max_growth = max_growth
+        self.growth_ratio = growth_ratio
         self.min_image_motion = min_image_motion           # px: less, and the tip is taken as stuck
         self.huber = huber
         self.scale = 10.0                                  # running scale of the residual (px)
@@ -109,6 +115,9 @@ class JacobianEstimator:
         rn = float(np.linalg.norm(r))
         self.last_residual = rn
         limit = self.huber * self.scale
+        growth = self._says_too_small(dm, dx - self.velocity * dt)
+        if growth:
+            limit = max(limit, rn)
         if rn > 4.0 * limit and self.updates > 5:
             self.rejected += 1                   # a tracker outlier or a jump of the target: not the scope
             self.scale = min(self.scale * 1.1, 200.0)
@@ -132,18 +141,39 @@ class JacobianEstimator:
         self.p = (v * np.clip(w, 1e-3, 1e7)) @ v.T       # bounded: no wind-up without excitation
         self.velocity = np.clip(theta[:, 2], -2000.0, 2000.0)
         if excited:
-            self.j = self._bounded(theta[:, :2])
+            self.j = self._bounded(theta[:, :2], grow=growth)
             self.updates += 1
         return bool(excited)
 
-    def _bounded(self, j: np.ndarray) -> np.ndarray:
+    def _says_too_small(self, dm: np.ndarray, own: np.ndarray) -> bool:
+        """True if the image motion ``own`` (px, the target's velocity removed) of the motor motion
+        ``dm`` (rad) went more than ``growth_ratio`` times as far along the predicted motion as J
+        predicts (at least 1 px predicted), with less than half of it sideways.
+
+        Near the target the prior (the assumed depth) is 2-4x too small, and the tip's stick-slip
+        shows it in the jumps at break-free, which the Huber clip and the outlier rule above kept out
+        of J: J grew by 10 % per pair at most, too slowly for the seconds before the caution had faded
+        (a near drift swung +-90 px with J at half its value). Erring this way is safe: a larger J
+        means smaller steps, and a target's own jump along our motion that inflates J costs speed,
+        until J shrinks back at ``max_change`` per pair."""
+        pred = self.j @ dm
+        pp = float(pred @ pred)
+        if pp < 1.0:
+            return False
+        ratio = float(own @ pred) / pp
+        return ratio > self.growth_ratio and float(np.linalg.norm(own - ratio * pred)) < 0.5 * float(np.linalg.norm(own))
+
+    def _bounded(self, j: np.ndarray, grow: bool = False) -> np.ndarray:
+        """``j`` within ``max_change`` (relative) of the current J — ``max_growth`` where ``grow``
+        and ``j`` is larger — and within :func:`bound_jacobian`'s bounds; the current J if impossible."""
         if not np.all(np.isfinite(j)):
             return self.j
         # J changes slowly in truth (distance, bend): one pair may move it by max_change at most.
         step = j - self.j
         size = float(np.linalg.norm(self.j))
-        if np.linalg.norm(step) > self.max_change * size:
-            j = self.j + step * (self.max_change * size / np.linalg.norm(step))
+        most = max(self.max_growth, self.max_change) if grow and np.linalg.norm(j) > size else self.max_change
+        if np.linalg.norm(step) > most * size:
+            j = self.j + step * (most * size / np.linalg.norm(step))
         out = bound_jacobian(j, self.prior, sv_min=self.sv_min, sv_max=self.sv_max, max_coupling=self.max_coupling)
         return self.j if out is None else out
 
