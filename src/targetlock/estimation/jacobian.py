@@ -153,9 +153,10 @@ class JacobianEstimator:
         Near the target the prior (the assumed depth) is 2-4x too small, and the tip's stick-slip
         shows it in the jumps at break-free, which the Huber clip and the outlier rule above kept out
         of J: J grew by 10 % per pair at most, too slowly for the seconds before the caution had faded
-        (a near drift swung +-90 px with J at half its value). Erring this way is safe: a larger J
-        means smaller steps, and a target's own jump along our motion that inflates J costs speed,
-        until J shrinks back at ``max_change`` per pair."""
+        (a near drift swung +-90 px with J at half its value). A jump sets the whole catch-up against
+        one pair's motion, so under stick-slip J ends too large (1.75x in the estimator test), and a
+        target's own jump along our motion inflates it too. Erring this way is safe: a larger J means
+        smaller steps; J shrinks back at ``max_change`` per pair."""
         pred = self.j @ dm
         pp = float(pred @ pred)
         if pp < 1.0:
