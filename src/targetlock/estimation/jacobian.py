@@ -111,11 +111,13 @@ class JacobianEstimator:
         if np.max(np.abs(dx)) > 1e5 or np.max(np.abs(dm)) > 10.0:
             self.rejected += 1                   # implausible: no image or handle moves that far between frames
             return False
-        r = dx - self.j @ dm - self.velocity * dt
+        pred = self.j @ dm
+        own = dx - self.velocity * dt            # the image motion less the target's own
+        r = dx - pred - self.velocity * dt
         rn = float(np.linalg.norm(r))
         self.last_residual = rn
         limit = self.huber * self.scale
-        growth = self._says_too_small(dm, dx - self.velocity * dt)
+        growth = self._says_too_small(pred, own)
         if growth:
             limit = max(limit, rn)
         if rn > 4.0 * limit and self.updates > 5:
@@ -126,12 +128,12 @@ class JacobianEstimator:
             r = r * (limit / rn)
         self.scale = min(max(0.95 * self.scale + 0.05 * min(rn, limit), 1.0), 200.0)
         excited = bool(np.linalg.norm(dm) >= self.min_motion)
-        if np.linalg.norm(dx - self.velocity * dt) < self.min_image_motion:
+        if np.linalg.norm(own) < self.min_image_motion:
             # The image did not follow the motor: the tip sticks (friction, backlash), it does not say
             # J is small. Only the target's velocity learns from this pair (selection biases J up: safe).
             excited = False
             dm = np.zeros(2)
-            r = dx - self.velocity * dt
+            r = own
         phi = np.array([dm[0], dm[1], dt])
         pm = self.p @ phi
         gain = pm / (self.forgetting + phi @ pm)
@@ -145,10 +147,10 @@ class JacobianEstimator:
             self.updates += 1
         return bool(excited)
 
-    def _says_too_small(self, dm: np.ndarray, own: np.ndarray) -> bool:
-        """True if the image motion ``own`` (px, the target's velocity removed) of the motor motion
-        ``dm`` (rad) went more than ``growth_ratio`` times as far along the predicted motion as J
-        predicts (at least 1 px predicted), with less than half of it sideways.
+    def _says_too_small(self, pred: np.ndarray, own: np.ndarray) -> bool:
+        """True if the image motion ``own`` (px, the target's velocity removed) went more than
+        ``growth_ratio`` times as far along ``pred``, the motion J predicts for the pair's motor motion
+        (px, at least 1 px), as ``pred`` itself, with less than half of it sideways.
 
         Near the target the prior (the assumed depth) is 2-4x too small, and the tip's stick-slip
         shows it in the jumps at break-free, which the Huber clip and the outlier rule above kept out
@@ -157,7 +159,6 @@ class JacobianEstimator:
         one pair's motion, so under stick-slip J ends too large (1.75x in the estimator test), and a
         target's own jump along our motion inflates it too. Erring this way is safe: a larger J means
         smaller steps; J shrinks back at ``max_change`` per pair."""
-        pred = self.j @ dm
         pp = float(pred @ pred)
         if pp < 1.0:
             return False
