@@ -182,6 +182,11 @@ def dask_client(scheduler: str | None, workers: int | None):
         from distributed import Client, LocalCluster
     except ImportError:
         raise ConfigError("sweeps run on Dask: install it with `pip install 'targetlock[sweep]'`") from None
+    # Importing distributed sets its loggers to INFO (dask's logging config), and its scheduler, client and
+    # nannies log in this process: ~40 lines around every run, burying the results table. Warnings only,
+    # unless debug messages were asked for (-v).
+    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
+        logging.getLogger("distributed").setLevel(logging.WARNING)
     if scheduler:
         try:
             return Client(scheduler, timeout="10s"), None
