@@ -199,8 +199,9 @@ def _step(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------- compare
 def _compare_options(p: argparse.ArgumentParser) -> None:
     from .controllers.base import CONTROLLERS
-    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=["pi", "pi-hc", "ik"],
-                   help="controllers to compare (default pi pi-hc ik)")
+    # The report's three (Fig. 6.4) and the run's default, so a comparison shows what `run` uses.
+    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=["pi", "pi-hc", "ik", "adaptive"],
+                   help="controllers to compare (default pi pi-hc ik adaptive)")
     p.add_argument("--latencies", type=float, nargs="+", metavar="S",
                    help="latencies to compare (s), each checked like twin.camera.latency (default: the config's)")
     _loop_options(p)

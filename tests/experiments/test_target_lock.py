@@ -124,6 +124,12 @@ def test_compare_command_table(tmp_path, capsys):
     assert (tmp_path / "c" / "compare.png").exists()
 
 
+def test_compare_by_default_sets_the_run_default_beside_the_reports_controllers(tmp_path, capsys):
+    assert main(["compare", "--seconds", "3", "--out", str(tmp_path / "c"), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [r["controller"] for r in s["rows"]] == ["pi", "pi-hc", "ik", RunConfig().controller.kind]
+
+
 def test_the_slew_limit_is_a_property_of_time_not_of_the_loop_rate():
     """Same scenario at 50, 200 and 1000 Hz: the same tracking within a few percent."""
     rms = []
