@@ -264,3 +264,24 @@ def test_a_hunt_about_a_resting_target_is_stopped_where_it_is(tmp_path):
     assert hunting["rest_motion_px"] > 4.0
     assert held["rest_motion_px"] < 1.0 and held["rest_rms_px"] < hunting["rest_rms_px"]
     assert held["rms_px"] < hunting["rms_px"]
+
+
+def test_a_far_step_is_not_crept_into_once_the_image_has_shown_j(tmp_path, monkeypatch):
+    """Robustness set 405 case 47: a target appearing 135 px off centre at 10.6 cm on a looped shaft. The
+    caution assumes the nearest distance's J until the fit is trusted, and the slow approach's motion is
+    taken up by the target's estimated velocity, so the fit has few pairs: the step crept in over ~5 s
+    (PI: 1.2 s). The pairs' own ratio of seen to predicted motion says within a second that J is about
+    the prior's (JacobianEstimator.size_bound): within 10 px from 3.5 s on, and not without the bound."""
+    import math
+
+    from targetlock.controllers import adaptive
+
+    def settled(evidence_px: float) -> float:
+        """s from which the error stays within 10 px"""
+        monkeypatch.setattr(adaptive, "CAUTION_EVIDENCE_PX", evidence_px)
+        d = run_target_lock(_robustness_case(tmp_path, 405, 47, 15.0))["_data"]
+        late = np.nonzero(d[:, 3] >= 10.0)[0]
+        return float(d[late[-1] + 1, 0]) if late.size else 0.0
+
+    assert settled(adaptive.CAUTION_EVIDENCE_PX) < 3.5
+    assert settled(math.inf) > 4.5

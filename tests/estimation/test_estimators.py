@@ -99,6 +99,39 @@ def test_a_sideways_jump_does_not_grow_the_jacobian():
     np.testing.assert_allclose(est.j, before)
 
 
+def test_the_pairs_bound_the_size_of_j_from_above_even_under_stick_slip():
+    """size_bound: margin x the largest ratio of seen to predicted image motion of any pair (>= 1 px
+    predicted by the prior) x the prior's size, once enough image motion was seen along the prior's
+    predictions. A sticking tip's pairs do not lower it and its break-free jumps raise it, so near the
+    target (J 3x the prior) it lies above the true J; far away (J about the prior) it stays near it."""
+    true_size = 3.0 * 300.0
+    est = JacobianEstimator(PRIOR)
+    assert est.size_bound(20.0, 1.0) is None                    # nothing seen yet
+    for a, b in zip(*stick_slip(3.0 * np.array([[-300.0, 30.0], [-20.0, -300.0]]))):
+        est.update(a, b, 0.05)
+    assert est.size_bound(20.0, 1.0) > true_size
+
+    rng = np.random.default_rng(3)
+    far = JacobianEstimator(PRIOR)
+    dm = np.array([0.008, -0.006])                              # 3 px per pair predicted
+    for k in range(10):
+        far.update(dm, PRIOR @ dm + rng.normal(0.0, 0.3, 2), 0.05)
+        if far.seen_along_prior < 20.0:
+            assert far.size_bound(20.0, 1.0) is None
+    assert 300.0 <= far.size_bound(20.0, 1.0) < 1.5 * 300.0
+    assert far.size_bound(20.0, 1.5) == pytest.approx(1.5 * far.size_bound(20.0, 1.0))
+
+
+def test_the_size_bound_ignores_pairs_without_predicted_or_seen_motion():
+    """Pairs the prior predicts less than 1 px for (the motor barely moved: any image motion is the
+    target's own) and pairs of a stuck tip (no image motion) give no bound, however many."""
+    est = JacobianEstimator(PRIOR)
+    for _ in range(100):
+        est.update(np.array([0.001, 0.0]), np.array([-5.0, 0.0]), 0.05)   # 0.3 px predicted, 5 px seen
+        est.update(np.array([0.01, 0.0]), np.zeros(2), 0.05)              # 3 px predicted, none seen
+    assert est.size_bound(20.0, 1.0) is None
+
+
 def test_prior_is_the_kinematic_jacobian_and_grows_at_short_distance():
     cam = CameraParams()
     near = prior_jacobian(np.zeros(2), camera=cam, depth=0.01, tip_gain=0.8, tip_length=0.12, n_elements=30)

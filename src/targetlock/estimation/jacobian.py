@@ -96,6 +96,13 @@ class JacobianEstimator:
         self.updates = 0
         self.rejected = 0
         self.last_residual = 0.0                           # px, a priori, of the newest pair
+        # What the pairs say of J's size against the prior, by themselves (no fit, no velocity): over the
+        # pairs for which the prior predicts at least ``ratio_min_px`` of image motion, the image motion
+        # seen along that prediction (px, summed; a pair that moved backwards adds nothing) and the largest
+        # ratio of it to the prediction (see :meth:`size_bound`).
+        self.ratio_min_px = 1.0
+        self.seen_along_prior = 0.0
+        self.largest_ratio = 0.0
 
     def predict(self, dm: np.ndarray) -> np.ndarray:
         """Image motion (px) the motor motion ``dm`` (rad) should cause."""
@@ -111,6 +118,7 @@ class JacobianEstimator:
         if np.max(np.abs(dx)) > 1e5 or np.max(np.abs(dm)) > 10.0:
             self.rejected += 1                   # implausible: no image or handle moves that far between frames
             return False
+        self._note_ratio(dm, dx)
         pred = self.j @ dm
         own = dx - self.velocity * dt            # the image motion less the target's own
         r = dx - pred - self.velocity * dt
@@ -146,6 +154,32 @@ class JacobianEstimator:
             self.j = self._bounded(theta[:, :2], grow=growth)
             self.updates += 1
         return bool(excited)
+
+    def _note_ratio(self, dm: np.ndarray, dx: np.ndarray) -> None:
+        """Add a pair (motor ``dm`` rad, image ``dx`` px) to :attr:`seen_along_prior` and
+        :attr:`largest_ratio` if the prior predicts at least ``ratio_min_px`` of image motion for it."""
+        p = self.prior @ dm
+        size = float(np.linalg.norm(p))
+        if size < self.ratio_min_px:
+            return
+        ratio = float(dx @ p) / (size * size)
+        self.seen_along_prior += max(ratio, 0.0) * size
+        self.largest_ratio = max(self.largest_ratio, ratio)
+
+    def size_bound(self, seen_px: float, margin: float) -> float | None:
+        """An upper bound on the size of J (px/rad, as :attr:`gain_scale`) from the pairs alone, once
+        ``seen_px`` of image motion has been seen along the prior's predictions: ``margin`` times the
+        largest ratio of seen to predicted motion of any pair, times the prior's size; None before.
+
+        A tip that sticks (friction, slack) moves the image less than J predicts, and one that breaks free
+        catches up in a jump, further than J predicts: so the largest ratio over many pairs overestimates
+        J rather than underestimates it, unlike a fit, which the sticking pairs pull down (near the
+        target, J ends 3x too small). It needs no fit and no velocity: right after engaging, when the
+        fit has too few pairs to be trusted and a slow approach's motion is taken up by the target's
+        estimated velocity, it already says that a far target's J is about the prior's."""
+        if self.seen_along_prior < seen_px or self.largest_ratio <= 0.0:
+            return None
+        return margin * self.largest_ratio * float(math.sqrt(abs(np.linalg.det(self.prior))))
 
     def _says_too_small(self, pred: np.ndarray, own: np.ndarray) -> bool:
         """True if the image motion ``own`` (px, the target's velocity removed) went more than
