@@ -55,10 +55,10 @@ def test_a_partial_oracle_hands_over_that_item_only_and_says_so():
         assert k.label.startswith(f"oracle {item} only"), k.label
 
 
-def _fitted(tmp_path, endoscope, name="fitted.toml"):
+def _fitted(tmp_path, endoscope, name="fitted.toml", preset="looped-shaft"):
     from targetlock.experiments.identify import preset_toml
     path = tmp_path / name
-    path.write_text(preset_toml(endoscope, "looped-shaft", "identified on the bench"))
+    path.write_text(preset_toml(endoscope, preset, "identified on the bench"))
     return str(path)
 
 
@@ -102,16 +102,22 @@ def test_a_missing_scope_file_is_one_clear_line(tmp_path):
         resolve_knowledge(KnowledgeConfig(endoscope_file=str(tmp_path / "nope.toml")), plant())
 
 
-def test_the_lock_holds_better_with_the_identified_scope_than_with_the_assumed_preset(tmp_path):
-    """Looped shaft at 3 cm: the lock assuming the calibrated preset against the same lock handed the
-    scope's identified parameters (measured: rms 98.7 -> 83.5 px over 20 s)."""
+@pytest.mark.parametrize("preset, path, measured", [("looped-shaft", "linear", "38.5 -> 26.6"),
+                                                     ("uncalibrated", "ellipse", "45.6 -> 22.9")])
+def test_the_lock_holds_better_with_the_identified_scope_than_with_the_assumed_preset(tmp_path, preset, path, measured):
+    """A scope unlike the assumed calibrated preset at 3 cm, on the report's path scaled to the distance
+    (the same angular motion of the view; the 12-cm path itself drives the tip to its limits at 3 cm,
+    where no model helps): the lock assuming the preset against the same lock handed the scope's
+    identified parameters (measured: rms ``measured`` px over 20 s)."""
     from targetlock.controllers import ControllerConfig
     from targetlock.experiments.target_lock import run_target_lock
     from targetlock.loop.runner import LoopConfig
 
-    twin = twin_config("looped-shaft", {"scene": {"distance": 0.03}})
+    s = 0.03 / 0.12
+    twin = twin_config(preset, {"scene": {"distance": 0.03, "path": path, "linear_length": 0.12 * s,
+                                          "ellipse_size": [0.13 * s, 0.12 * s]}})
     base = RunConfig(twin=twin, controller=ControllerConfig(kind="adaptive"), loop=LoopConfig(seconds=20.0))
     assumed = run_target_lock(base)
     known = run_target_lock(dataclasses.replace(
-        base, knowledge=KnowledgeConfig(endoscope_file=_fitted(tmp_path, twin.endoscope))))
-    assert known["rms_px"] < 0.9 * assumed["rms_px"]
+        base, knowledge=KnowledgeConfig(endoscope_file=_fitted(tmp_path, twin.endoscope, f"{preset}.toml", preset))))
+    assert known["rms_px"] < 0.85 * assumed["rms_px"]
