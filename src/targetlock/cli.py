@@ -217,7 +217,12 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=("model", "loop", "vision", "robustness", "gym"), help="what to measure")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object on the last line")
     p.add_argument("--cases", type=int, default=60, help="robustness: number of random cases (default 60)")
-    p.add_argument("--seed", type=int, default=0, help="robustness: seed of the random set (default 0)")
+    p.add_argument("--seed", default="0", metavar="SEED[,SEED...]",
+                   help="robustness: seed of the random set, or a comma-separated list of seeds: several sets, pooled, "
+                        "with each set's median and a breakdown by distance and motion (default 0)")
+    p.add_argument("--out", metavar="DIR", help="robustness: also write a run folder (config, cases.csv as runs "
+                                                "finish, each case's config and waypoints, summary.json)")
+    p.add_argument("--overwrite", action="store_true", help="allow --out to replace an earlier run folder")
     p.add_argument("--workers", type=int, metavar="N", help="robustness: run the cases on a local Dask cluster of N "
                                                             "worker processes (default: in this process)")
     p.add_argument("--controllers", metavar="LIST", help="robustness: comma-separated controllers to run (default: all); "
@@ -237,9 +242,10 @@ def _bench(args: argparse.Namespace) -> int:
         res = bench_loop()
         print(f"loop: real-time factor {res['realtime_factor']:.0f}; step of ik {res['ik_step_ms']:.4f} ms, of adaptive {res['adaptive_step_ms']:.4f} ms")
     elif args.what == "robustness":
-        from .experiments.robustness import BENCH_CONTROLLERS, bench_robustness, parse_controllers
+        from .experiments.robustness import BENCH_CONTROLLERS, bench_robustness, parse_controllers, parse_seeds
         controllers = parse_controllers(args.controllers) if args.controllers is not None else BENCH_CONTROLLERS
-        res = bench_robustness(args.cases, args.seed, workers=args.workers, controllers=controllers)
+        res = bench_robustness(args.cases, parse_seeds(args.seed), workers=args.workers, controllers=controllers,
+                               out=args.out, overwrite=args.overwrite)
     elif args.what == "gym":
         from .bench import bench_gym
         res = bench_gym()

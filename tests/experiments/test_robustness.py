@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from targetlock.config import ConfigError
-from targetlock.experiments.robustness import MOTIONS, case_config, draw_cases, parse_controllers, run_robustness, score
+from targetlock.experiments.robustness import (DISTANCE_BANDS, MOTIONS, breakdown, case_config, draw_cases, parse_controllers,
+                                               parse_seeds, run_robustness, score)
+from targetlock.experiments.target_lock import RunConfig
 
 
 def test_cases_are_seeded_and_within_the_stated_ranges():
@@ -76,3 +78,81 @@ def test_controller_names_take_a_knowledge_source_and_bad_ones_name_what_is_allo
     cfg = case_config(case, "adaptive+oracle-depth", path, 3.0, 0)
     assert cfg.controller.kind == "adaptive" and cfg.knowledge.source == "oracle-depth"
     assert case_config(case, "pi", path, 3.0, 0).knowledge.source == "nominal"
+
+
+def test_several_sets_are_pooled_and_each_set_is_the_same_as_run_alone():
+    both = run_robustness(2, seed=(1, 2), controllers=("pi", "pi-hc"), seconds=3.0)
+    alone = run_robustness(2, seed=2, controllers=("pi", "pi-hc"), seconds=3.0)
+    assert [r["seed"] for r in both["per_case"]["pi-hc"]] == [1, 1, 2, 2]
+    assert both["sets"][2] == alone["summary"]
+    pooled = [r["rms_px"] for r in both["per_case"]["pi-hc"]]
+    assert both["summary"]["pi-hc"]["rms_median"] == float(np.median(pooled))
+
+
+def test_the_breakdown_splits_every_case_into_one_distance_band_and_one_motion():
+    per = {"pi": [], "x": []}
+    for i, (d, m) in enumerate([(0.012, "step"), (0.025, "drift"), (0.05, "step"), (0.14, "drift")]):
+        per["pi"].append({"rms_px": 10.0, "distance": d, "motion": m})
+        per["x"].append({"rms_px": 5.0 + 5.0 * i, "distance": d, "motion": m})   # 5, 10, 15, 20 px
+    b = breakdown(per)["x"]
+    assert sum(b[band]["cases"] for band in DISTANCE_BANDS) == 4
+    assert sum(b[m]["cases"] for m in MOTIONS) == 4
+    assert b["1-3 cm"]["rms_median"] == 7.5 and b["1-3 cm"]["cases_worse_than_pi_by_10pct"] == 0
+    assert b["step"]["rms_median"] == 10.0 and b["drift"]["cases_worse_than_pi_by_10pct"] == 1
+    assert b["10-15 cm"]["ratio_to_pi_median"] == 2.0 and b["rotation"]["cases"] == 0
+
+
+def test_the_benchmark_folder_keeps_every_finished_run_and_each_case_runs_again(tmp_path, monkeypatch, capsys):
+    import csv
+
+    from targetlock.config import load_toml
+    from targetlock.experiments import robustness
+    from targetlock.experiments.target_lock import run_target_lock
+
+    res = robustness.bench_robustness(2, (4,), controllers=("pi", "pi-hc"), out=tmp_path / "bench")
+    rows = list(csv.DictReader((tmp_path / "bench" / "cases.csv").open()))
+    assert [(r["case"], r["controller"]) for r in rows] == [("0", "pi"), ("0", "pi-hc"), ("1", "pi"), ("1", "pi-hc")]
+    assert res["controllers"]["pi-hc"]["rms_median"] == float(np.median([float(r["rms_px"]) for r in rows[1::2]]))
+    # A row is reproduced by its case's config (written for PI), with the waypoints it names.
+    cfg = load_toml(RunConfig, tmp_path / "bench" / "cases" / "seed-4-case-001.toml")
+    again = robustness.score(run_target_lock(cfg)["_data"], cfg.twin.camera.width, cfg.twin.camera.height,
+                             cfg.loop.metrics_after)
+    assert again["rms_px"] == float(rows[2]["rms_px"])
+
+    # Killed during the third run: the two finished rows are on disk already (read while it runs, as
+    # after a kill -9, which closes no file).
+    calls, seen = [], []
+    real = robustness.score_run
+
+    def dies(cfg):
+        calls.append(cfg)
+        if len(calls) > 2:
+            seen.extend(csv.DictReader((tmp_path / "killed" / "cases.csv").open()))
+            raise KeyboardInterrupt
+        return real(cfg)
+    monkeypatch.setattr(robustness, "score_run", dies)
+    with pytest.raises(KeyboardInterrupt):
+        robustness.bench_robustness(2, (4,), controllers=("pi", "pi-hc"), out=tmp_path / "killed")
+    assert [(r["case"], r["controller"]) for r in seen] == [("0", "pi"), ("0", "pi-hc")]
+
+
+def test_seeds_are_one_or_a_list_and_bad_ones_name_what_is_allowed():
+    assert parse_seeds("7") == (7,) and parse_seeds("0, 23,204") == (0, 23, 204)
+    for bad in ("", "a", "-1", "1,1", "1.5"):
+        with pytest.raises(ConfigError, match="--seed"):
+            parse_seeds(bad)
+
+
+def test_the_command_takes_several_seeds_and_prints_each_sets_median_and_the_breakdown(tmp_path, capsys):
+    import json
+
+    from targetlock.cli import main
+    assert main(["bench", "robustness", "--cases", "2", "--seed", "1,2", "--controllers", "pi-hc", "--json"]) == 0
+    out = capsys.readouterr().out
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["seed"] == [1, 2] and set(res["sets"]) == {"1", "2"}
+    assert res["mean_of_set_medians"]["pi-hc"] == pytest.approx(
+        (res["sets"]["1"]["pi-hc"]["rms_median"] + res["sets"]["2"]["pi-hc"]["rms_median"]) / 2)
+    assert "median rms per set" in out and "1-3 cm" in out
+    assert main(["bench", "robustness", "--seed", "1,1"]) == 2
+    assert "named twice" in capsys.readouterr().err

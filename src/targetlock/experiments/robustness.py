@@ -31,9 +31,11 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Sequence
 
 import numpy as np
 
+from ..config import param, save_toml
 from ..controllers import CONTROLLERS, ControllerConfig, KnowledgeConfig
 from ..controllers.knowledge import KNOWLEDGE_SOURCES
 from ..loop.runner import LoopConfig
@@ -43,7 +45,8 @@ from ..rig.simulated import ObservationNoise
 from .target_lock import RunConfig, run_target_lock
 
 __all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "write_waypoints", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
-           "format_table", "bench_robustness"]
+           "CASE_COLUMNS", "DISTANCE_BANDS", "breakdown", "format_table", "format_breakdown", "RobustnessSpec", "parse_seeds",
+           "bench_robustness"]
 
 MOTIONS = ("smooth", "stops", "move", "drift", "rotation", "step")
 RESTING = ("move", "step")
@@ -201,44 +204,82 @@ def score_run(cfg: RunConfig) -> dict:
     return score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
 
 
-def run_robustness(n_cases: int = 60, seed: int = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
-                   seconds: float = 12.0, progress: bool = False, workers: int | None = None) -> dict:
-    """Run every controller on every case; returns per-case scores and the per-controller summary.
+CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", "latency_s", "fps", "rms_px", "peak_px",
+                "out_of_view", "rest_rms_px", "rest_motion_px"]
+"""Columns of a per-case row (:func:`run_robustness`'s ``on_result``, ``bench robustness --out``'s ``cases.csv``)."""
+
+
+def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
+                   seconds: float = 12.0, progress: bool = False, workers: int | None = None,
+                   cases_folder: Path | None = None, on_result: Callable[[dict], None] | None = None) -> dict:
+    """Run every controller on every case of one random set (``seed``) or several (a sequence of
+    seeds, ``n_cases`` each); returns per-case scores and the per-controller summary over all cases
+    (:func:`summarise`), with ``sets`` (the summary of each set, by seed) and ``breakdown``
+    (:func:`breakdown`) when there are several.
 
     ``workers``: run the cases on a local Dask cluster of that many single-threaded worker processes
-    (the sweep engine, :func:`targetlock.experiments.sweep.dask_client`) instead of in this process."""
-    cases = draw_cases(n_cases, seed, seconds)
+    (the sweep engine, :func:`targetlock.experiments.sweep.dask_client`) instead of in this process.
+    ``cases_folder``: keep each case's waypoints there (``seed-S-case-NNN.csv``, else in a temporary
+    folder) with its run config for PI (``seed-S-case-NNN.toml``: ``targetlock run --config`` runs the
+    case again, ``--controller`` / ``--set knowledge.source=...`` with another controller). ``on_result(row)``
+    is called as each run finishes, with a row of :data:`CASE_COLUMNS`."""
+    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
+    if not seeds:
+        raise ValueError("run_robustness: no seed given")
     if "pi" not in controllers:
         controllers = ("pi",) + tuple(controllers)
+    sets = [(s, draw_cases(n_cases, s, seconds)) for s in seeds]
     per: dict[str, list[dict]] = {c: [] for c in controllers}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="targetlock-robustness-") as tmp:
-        configs = []
-        for case in cases:
-            path = Path(tmp) / f"case{case.index}.csv"
-            write_waypoints(case, path)
-            configs.append([case_config(case, c, path, seconds, seed) for c in controllers])
+        folder = Path(cases_folder) if cases_folder is not None else Path(tmp)
+        jobs = []                      # (seed, case, controller, config), in set, case, controller order
+        for s, cases in sets:
+            for case in cases:
+                path = folder / f"seed-{s}-case-{case.index:03d}.csv"
+                write_waypoints(case, path)
+                if cases_folder is not None:   # kept: a row of the results can be run again
+                    save_toml(case_config(case, "pi", path.resolve(), seconds, s), path.with_suffix(".toml"))
+                jobs += [(s, case, c, case_config(case, c, path, seconds, s)) for c in controllers]
+        scores: list[dict | None] = [None] * len(jobs)
+
+        def done(k: int, sc: dict) -> None:
+            s, case, c, _ = jobs[k]
+            sc.update(seed=s, case=case.index, motion=case.motion, distance=case.distance)
+            scores[k] = sc
+            if on_result is not None:
+                on_result({"seed": s, "case": case.index, "controller": c, "motion": case.motion, "preset": case.preset,
+                           "distance_m": case.distance, "latency_s": case.camera["latency"], "fps": case.camera["fps"],
+                           **{k2: sc[k2] for k2 in CASE_COLUMNS[8:]}})
+
         if workers:
+            from distributed import as_completed
+
             from .sweep import dask_client
             client, cluster = dask_client(None, workers)
             try:
-                futures = [client.map(score_run, row, pure=False) for row in configs]
-                scores = [client.gather(row) for row in futures]
+                futures = {client.submit(score_run, j[3], pure=False): k for k, j in enumerate(jobs)}
+                for fut in as_completed(futures):
+                    done(futures[fut], fut.result())
             finally:
                 client.close()
                 if cluster is not None:
                     cluster.close()
         else:
-            scores = [[score_run(cfg) for cfg in row] for row in configs]
-        for case, row in zip(cases, scores):
-            for c, sc in zip(controllers, row):
-                sc.update(case=case.index, motion=case.motion, distance=case.distance)
-                per[c].append(sc)
-            if progress:
-                print(case.describe() + ": " + ", ".join(f"{c} {per[c][-1]['rms_px']:.0f}" for c in controllers),
-                      flush=True)
-    return {"seed": seed, "cases": n_cases, "seconds": seconds, "wall_seconds": time.perf_counter() - t0,
-            "workers": workers or 0, "per_case": per, "summary": summarise(per)}
+            for k, j in enumerate(jobs):
+                done(k, score_run(j[3]))
+        for k, (s, case, c, _) in enumerate(jobs):
+            per[c].append(scores[k])
+            if progress and c == controllers[-1]:
+                row = scores[k - len(controllers) + 1:k + 1]
+                print(f"seed {s} " + case.describe() + ": " +
+                      ", ".join(f"{name} {r['rms_px']:.0f}" for name, r in zip(controllers, row)), flush=True)
+    out = {"seed": seeds[0] if len(seeds) == 1 else list(seeds), "cases": n_cases, "seconds": seconds,
+           "wall_seconds": time.perf_counter() - t0, "workers": workers or 0, "per_case": per, "summary": summarise(per)}
+    if len(seeds) > 1:
+        out["sets"] = {s: summarise({c: [r for r in rows if r["seed"] == s] for c, rows in per.items()}) for s in seeds}
+        out["breakdown"] = breakdown(per)
+    return out
 
 
 def summarise(per: dict[str, list[dict]]) -> dict:
@@ -269,6 +310,50 @@ def summarise(per: dict[str, list[dict]]) -> dict:
     return out
 
 
+DISTANCE_BANDS = {"1-3 cm": (0.0, 0.03), "3-6 cm": (0.03, 0.06), "6-10 cm": (0.06, 0.10), "10-15 cm": (0.10, math.inf)}
+"""Target distance bands (m, [lo, hi)) of :func:`breakdown`: near the target, where J is 4-12x the 12-cm
+prior's and the scope's dead travel decides, to the report's 12 cm, where PI's gain was tuned."""
+
+
+def breakdown(per: dict[str, list[dict]]) -> dict:
+    """Per controller, by target distance (:data:`DISTANCE_BANDS`) and by motion (:data:`MOTIONS`): the
+    number of cases, the median rms (px), the median per-case ratio to PI and the cases worse than
+    1.1x PI. Where a controller loses is rarely spread evenly: near cases and steps are where the
+    estimates are still wrong, far drifts where PI's gain is right."""
+    pi = np.array([r["rms_px"] for r in per["pi"]])
+    dist = np.array([r["distance"] for r in per["pi"]])
+    motion = np.array([r["motion"] for r in per["pi"]])
+    groups = {**{band: (dist >= lo) & (dist < hi) for band, (lo, hi) in DISTANCE_BANDS.items()},
+              **{m: motion == m for m in MOTIONS}}
+    out: dict[str, dict] = {}
+    for c, rows in per.items():
+        rms = np.array([r["rms_px"] for r in rows])
+        ratio = rms / pi
+        out[c] = {g: {"cases": int(sel.sum()),
+                      "rms_median": float(np.median(rms[sel])) if sel.any() else math.nan,
+                      "ratio_to_pi_median": float(np.median(ratio[sel])) if sel.any() else math.nan,
+                      "cases_worse_than_pi_by_10pct": int(np.sum(ratio[sel] > 1.1))}
+                  for g, sel in groups.items()}
+    return out
+
+
+def format_breakdown(by: dict) -> list[str]:
+    """:func:`breakdown` as a table: per controller and group, median rms / per-case ratio to PI
+    (cases worse than 1.1x PI)."""
+    groups = list(next(iter(by.values())))
+    w = max([18] + [len(c) for c in by])
+    title = "median rms/xPI (>1.1xPI)"
+    w = max(w, len(title))
+    cells = {c: [f"{v['rms_median']:.1f}/{v['ratio_to_pi_median']:.2f} ({v['cases_worse_than_pi_by_10pct']})"
+                 if v["cases"] else "-" for v in g.values()] for c, g in by.items()}
+    widths = [max(len(g), *(len(cells[c][k]) for c in by)) for k, g in enumerate(groups)]
+    first = next(iter(by.values()))
+    lines = [f"{title:<{w}} " + " ".join(f"{g:>{widths[k]}}" for k, g in enumerate(groups)),
+             f"{'cases':<{w}} " + " ".join(f"{first[g]['cases']:>{widths[k]}}" for k, g in enumerate(groups))]
+    lines += [f"{c:<{w}} " + " ".join(f"{cell:>{widths[k]}}" for k, cell in enumerate(cells[c])) for c in by]
+    return lines
+
+
 def format_table(summary: dict) -> list[str]:
     w = max([18] + [len(c) for c in summary])
     lines = [f"{'controller':<{w}} {'rms med':>7} {'xPI med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
@@ -296,21 +381,89 @@ def parse_controllers(names: str) -> tuple[str, ...]:
     return out
 
 
-def bench_robustness(n_cases: int = 60, seed: int = 0, workers: int | None = None,
-                     controllers: tuple[str, ...] = BENCH_CONTROLLERS) -> dict:
-    """``targetlock bench robustness``: print the table; returns the summary (the JSON line)."""
+@dataclass(frozen=True)
+class RobustnessSpec:
+    """What ``targetlock bench robustness`` ran (the run folder's ``config.toml``)."""
+    cases: int = param(60, lo=1, hi=10000, doc="random cases per set")
+    seeds: tuple[int, ...] = param((0,), doc="seeds of the random sets (each its own set of cases)")
+    controllers: tuple[str, ...] = param(BENCH_CONTROLLERS, doc="controllers, kind[+knowledge source]; pi always runs")
+    seconds: float = param(12.0, unit="s", lo=1.0, hi=3600.0, doc="length of each run")
+    workers: int = param(0, lo=0, hi=512, doc="local Dask worker processes (0: in this process)")
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``--seed``: one seed or a comma-separated list (``0,23,204``), each in [0, 2^63)."""
     from ..config import ConfigError
+    try:
+        seeds = tuple(int(p) for p in str(text).split(",") if p.strip())
+    except ValueError:
+        raise ConfigError(f"--seed = {text!r}; allowed: a whole number in [0, 2^63) or a comma-separated list of them") from None
+    if not seeds or any(not 0 <= s < 2 ** 63 for s in seeds):
+        raise ConfigError(f"--seed = {text!r}; allowed: a whole number in [0, 2^63) or a comma-separated list of them")
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"--seed = {text!r}: a seed is named twice (the same set would count twice)")
+    return seeds
+
+
+def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: int | None = None,
+                     controllers: tuple[str, ...] = BENCH_CONTROLLERS, out: str | Path | None = None,
+                     overwrite: bool = False) -> dict:
+    """``targetlock bench robustness``: print the table; returns the summary (the JSON line).
+
+    Several seeds run several random sets in one go (one Dask cluster): the table is pooled over all
+    cases, with each set's median and their mean, and a breakdown by distance and motion. ``out``: a run
+    folder with ``config.toml``, ``cases.csv`` (one row per run, :data:`CASE_COLUMNS`, appended as
+    runs finish, so a killed benchmark keeps them), each case's waypoints (``cases/``) and
+    ``summary.json``."""
+    from ..config import ConfigError
+    from .runfolder import RunFolder
+    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
     if not 1 <= n_cases <= 10000:
         raise ConfigError(f"--cases = {n_cases}; allowed: [1, 10000]")
-    if seed < 0:
-        raise ConfigError(f"--seed = {seed}; allowed: [0, 2^63)")
+    if not seeds or any(s < 0 for s in seeds):
+        raise ConfigError(f"--seed = {','.join(map(str, seeds))}; allowed: [0, 2^63)")
     if workers is not None and not 1 <= workers <= 512:
         raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
-    r = run_robustness(n_cases, seed, controllers=controllers, workers=workers)
-    print(f"robustness: {n_cases} random cases (seed {seed}), {r['seconds']:g} s each, nominal knowledge "
-          f"unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view = image "
-          f"half diagonal), ratios to PI (I = 300)")
+    if out is None:
+        return _bench(n_cases, seeds, workers, controllers, None)
+    spec = RobustnessSpec(cases=n_cases, seeds=seeds, controllers=tuple(controllers), workers=workers or 0)
+    with RunFolder("robustness", spec, out, overwrite=overwrite) as folder:
+        return _bench(n_cases, seeds, workers, controllers, folder)
+
+
+def _bench(n_cases: int, seeds: tuple[int, ...], workers: int | None, controllers: tuple[str, ...], folder) -> dict:
+    """:func:`bench_robustness` after its checks, into the run folder ``folder`` (or none)."""
+    if folder is None:
+        r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers)
+    else:
+        (folder.path / "cases").mkdir()
+        with folder.file("cases.csv").open("w", newline="") as fh:
+            table = csv.DictWriter(fh, CASE_COLUMNS)
+            table.writeheader()
+
+            def on_result(row: dict) -> None:
+                table.writerow(row)
+                fh.flush()
+            r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers,
+                               cases_folder=folder.path / "cases", on_result=on_result)
+    print(f"robustness: {n_cases} random cases per set (seed {', '.join(map(str, seeds))}), {r['seconds']:g} s each, "
+          f"nominal knowledge unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view "
+          f"= image half diagonal), ratios to PI (I = 300)")
     print("\n".join(format_table(r["summary"])))
+    result = {"seed": r["seed"], "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
+              "controllers": r["summary"]}
+    if len(seeds) > 1:
+        sets = r["sets"]
+        means = {c: float(np.mean([sets[s][c]["rms_median"] for s in seeds])) for c in r["summary"]}
+        w = max([18] + [len(c) for c in means])
+        print(f"{'median rms per set':<{w}} " + " ".join(f"{s:>7}" for s in seeds) + f" {'mean':>7}")
+        for c, m in means.items():
+            print(f"{c:<{w}} " + " ".join(f"{sets[s][c]['rms_median']:>7.1f}" for s in seeds) + f" {m:>7.2f}")
+        print("\n".join(format_breakdown(r["breakdown"])))
+        result.update(mean_of_set_medians=means, sets={str(s): v for s, v in sets.items()}, breakdown=r["breakdown"])
     print(f"({r['wall_seconds']:.0f} s " + (f"on {workers} Dask workers)" if workers else "on one core)"))
-    return {"seed": seed, "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
-            "controllers": r["summary"]}
+    if folder is not None:
+        folder.write_summary(result)
+        result["run_folder"] = str(folder.path)
+        print(f"run folder: {folder.path}")
+    return result
