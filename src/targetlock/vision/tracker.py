@@ -552,6 +552,10 @@ class TrackerSettings:
     phase_dense: bool = param(True, doc="just selected or re-acquired on the selection keyframe and no corner "
                                         "follows: a dense match of the selection keyframe placed by the region's "
                                         "phase correlation and agreeing with it carries the frame")
+    survivor_seed: bool = param(True, doc="just selected or re-acquired (no velocity known) and the chain failed: "
+                                          "when at least 3 corners passed the flow's checks and moved together (within "
+                                          "3 px), their motion seeds one more attempt (fast motion that blurred the "
+                                          "rest and left the phase correlation without a peak)")
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
@@ -694,7 +698,8 @@ class FeatureTracker(Tracker):
                       "retried": 0, "dense_reacquisitions": 0, "lost_frames": 0, "local_searches": 0,
                       "orb_searches": 0, "dense_searches": 0, "dense_presearch_skips": 0,
                       "similarity_dropped": 0, "similarity_limited": 0, "covered_overruled": 0, "edge_smeared": 0,
-                      "seeded_relocks": 0, "phase_dense": 0, "dense_anchor_disagrees": 0, "scene_relocks": 0}
+                      "seeded_relocks": 0, "phase_dense": 0, "dense_anchor_disagrees": 0, "scene_relocks": 0,
+                      "survivor_seeds": 0}
         self._chain_only = 0
         self._verified_misses = False  # every miss since the last accepted frame was reported (see _update)
         self._lost_frames = 0
@@ -937,6 +942,17 @@ class FeatureTracker(Tracker):
             pi = np.clip(np.round(p0.reshape(-1, 2)[ok]).astype(int), 0, [w - 1, h - 1])
             ok[idx[self._avoided(b)[qi[:, 1], qi[:, 0]] | self._avoided(a)[pi[:, 1], pi[:, 0]]]] = False
         return pts[ok], _apply(b.to_frame, q[ok])
+
+    @staticmethod
+    def _common_motion(src: np.ndarray, dst: np.ndarray, least: int = 3, spread_px: float = 3.0) -> np.ndarray | None:
+        """The median translation (px) of at least ``least`` followed points (``src`` -> ``dst``, frame
+        px) if every one of them moved within ``spread_px`` of it (motion blur and the lens distortion
+        spread a fast motion by a few px), else None."""
+        if len(src) < least:
+            return None
+        d = np.asarray(dst, float) - np.asarray(src, float)
+        m = np.median(d, axis=0)
+        return m if float(np.max(np.linalg.norm(d - m, axis=1))) <= spread_px else None
 
     def _motion(self, src: np.ndarray, dst: np.ndarray, centre: np.ndarray):
         """RANSAC affine (lens distortion and perspective make the local motion anisotropic), then
@@ -1650,12 +1666,28 @@ class FeatureTracker(Tracker):
         if chain is None and not relock:
             # Unexpected motion: a second attempt seeded by the coarse shift from phase correlation
             # of the same region in both frames (or, if that seeded the first one, by no motion).
+            survivors = (src, dst)
             shift = np.zeros(2) if tried_shift else self._coarse_shift(frame)
             if shift is not None and np.hypot(*(self._pos + shift - pred)) > 2.0:
                 pred = self._pos + shift
                 view = self._crop(frame, pred)
                 src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + shift, s.lk_levels)
                 chain = self._motion(src, dst, self._pos)
+            common = self._common_motion(*survivors) if chain is None and not self._vel_known and s.survivor_seed \
+                else None
+            if common is not None and np.hypot(*(self._pos + common - pred)) > 2.0:
+                # Just selected or re-acquired (no velocity to predict from) in fast motion: the blur
+                # left most corners beyond the forward-backward check and the phase correlation found
+                # no peak, but the few corners that passed moved together: their motion seeds one more
+                # attempt (seed 5's retina `fast`, 17 px per frame from the first frame: 5 of 40 corners
+                # passed, all within 3 px of the true motion; the phase correlation's peak was 0.01).
+                # Not once a velocity is known: a jump away from it is not believed, and a frame of
+                # displaced texture moves every corner together too.
+                pred = self._pos + common
+                view = self._crop(frame, pred)
+                src, dst = self._flow(self._prev, view, self._prev_pts, self._prev_pts + common, s.lk_levels)
+                chain = self._motion(src, dst, self._pos)
+                self.stats["survivor_seeds"] += 1
         suspect = False  # the chain's own scale/rotation were implausible: it is no corroboration
         if chain is not None:
             chain, suspect = self._steady(chain, steps)
