@@ -376,6 +376,9 @@ class TrackerSettings:
     lk_window_px: int = param(11, unit="px", lo=5, hi=61, doc="Lucas-Kanade window side (odd)")
     lk_levels: int = param(3, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, frame-to-frame flow")
     key_levels: int = param(2, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, keyframe flow (prediction-aligned)")
+    key_flow_local: bool = param(False, doc="the keyframe flow runs on the regions with their local mean removed "
+                                           "(Gaussian, sigma 5 px): the light's fall-off changes across the window "
+                                           "as the tip moves, which biases the flow of faint texture")
     fb_max_px: float = param(1.0, unit="px", lo=0.01, hi=20.0, doc="largest forward-backward flow error of a kept feature")
     ransac_px: float = param(2.0, unit="px", lo=0.1, hi=20.0, doc="RANSAC inlier distance")
     min_inliers: int = param(8, lo=3, hi=500, doc="fewest RANSAC inliers for a valid motion estimate")
@@ -914,7 +917,7 @@ class FeatureTracker(Tracker):
         return pts + off.astype(np.float32), int(np.count_nonzero(strong))
 
     # ------------------------------------------------------------- estimation
-    def _flow(self, a: _View, b: _View, pts: np.ndarray, guess: np.ndarray, levels: int):
+    def _flow(self, a: _View, b: _View, pts: np.ndarray, guess: np.ndarray, levels: int, local: bool = False):
         """Pyramidal LK of points ``pts`` (frame px of view a) into view b, starting from ``guess``
         (frame px of view b), with a forward-backward check; points that end on a highlight are
         dropped. Returns (src, dst) frame coordinates of the kept points."""
@@ -922,7 +925,7 @@ class FeatureTracker(Tracker):
             return pts, pts
         p0 = _apply(_inv(a.to_frame), pts).astype(np.float32).reshape(-1, 1, 2)
         g = _apply(_inv(b.to_frame), guess).astype(np.float32).reshape(-1, 1, 2)
-        ga, gb = a.gray, b.gray
+        ga, gb = (a.local(), b.local()) if local else (a.gray, b.gray)
         if self._retry:  # local-mean-free, and only fine levels: large areas that clipped or came
             # out of clipping change the coarse levels most
             ga, gb, levels = a.local(), b.local(), min(levels, 1)
@@ -1479,7 +1482,8 @@ class FeatureTracker(Tracker):
         """Optical flow keyframe -> this frame's region ``base``, warped by the predicted transform.
         Returns (motion or None, kept keyframe points, their matches, the warped region)."""
         wv = self._warp(base, key_to_pred @ kf.view.to_frame)
-        ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels)
+        ksrc, kdst = self._flow(kf.view, wv, kf.pts, _apply(key_to_pred, kf.pts), self.settings.key_levels,
+                                local=self.settings.key_flow_local)
         return self._motion(ksrc, kdst, kf.target), ksrc, kdst, wv
 
     def _match_ecc(self, kf: _Keyframe, key_to_pred: np.ndarray, wv: _View) -> tuple[np.ndarray, float] | None:
