@@ -241,7 +241,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
                 if cases_folder is not None:   # kept: a row of the results can be run again
                     save_toml(case_config(case, "pi", path.resolve(), seconds, s), path.with_suffix(".toml"))
                 jobs += [(s, case, c, case_config(case, c, path, seconds, s)) for c in controllers]
-        scores: list[dict | None] = [None] * len(jobs)
+        scores: list[dict] = [{} for _ in jobs]     # filled in as the runs finish (any order on Dask)
 
         def done(k: int, sc: dict) -> None:
             s, case, c, _ = jobs[k]
