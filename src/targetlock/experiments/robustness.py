@@ -224,8 +224,8 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
     case again, ``--controller`` / ``--set knowledge.source=...`` with another controller). ``on_result(row)``
     is called as each run finishes, with a row of :data:`CASE_COLUMNS`."""
     seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
-    if not seeds:
-        raise ValueError("run_robustness: no seed given")
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"run_robustness: seeds {list(seeds)}; allowed: one or more, each once")
     if "pi" not in controllers:
         controllers = ("pi",) + tuple(controllers)
     sets = [(s, draw_cases(n_cases, s, seconds)) for s in seeds]
