@@ -204,8 +204,8 @@ def score_run(cfg: RunConfig) -> dict:
     return score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
 
 
-CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", "latency_s", "fps", "rms_px", "peak_px",
-                "out_of_view", "rest_rms_px", "rest_motion_px"]
+SCORES = ("rms_px", "peak_px", "out_of_view", "rest_rms_px", "rest_motion_px")   # of :func:`score`
+CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", "latency_s", "fps", *SCORES]
 """Columns of a per-case row (:func:`run_robustness`'s ``on_result``, ``bench robustness --out``'s ``cases.csv``)."""
 
 
@@ -250,7 +250,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
             if on_result is not None:
                 on_result({"seed": s, "case": case.index, "controller": c, "motion": case.motion, "preset": case.preset,
                            "distance_m": case.distance, "latency_s": case.camera["latency"], "fps": case.camera["fps"],
-                           **{k2: sc[k2] for k2 in CASE_COLUMNS[8:]}})
+                           **{name: sc[name] for name in SCORES}})
 
         if workers:
             from distributed import as_completed
