@@ -31,7 +31,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -44,8 +44,11 @@ from ..model.twin import PRESETS, twin_config
 from ..rig.simulated import ObservationNoise
 from .target_lock import RunConfig, run_target_lock
 
+if TYPE_CHECKING:
+    from .runfolder import RunFolder
+
 __all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "write_waypoints", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
-           "CASE_COLUMNS", "DISTANCE_BANDS", "breakdown", "format_table", "format_breakdown", "RobustnessSpec", "parse_seeds",
+           "CASE_COLUMNS", "DISTANCE_BANDS", "breakdown", "format_table", "format_breakdown", "RobustnessSpec", "check_seeds", "parse_seeds",
            "bench_robustness"]
 
 MOTIONS = ("smooth", "stops", "move", "drift", "rotation", "step")
@@ -209,6 +212,11 @@ CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", 
 """Columns of a per-case row (:func:`run_robustness`'s ``on_result``, ``bench robustness --out``'s ``cases.csv``)."""
 
 
+def _as_seeds(seed: int | Sequence[int]) -> tuple[int, ...]:
+    """One seed or several, as a tuple."""
+    return (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
+
+
 def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
                    seconds: float = 12.0, progress: bool = False, workers: int | None = None,
                    cases_folder: Path | None = None, on_result: Callable[[dict], None] | None = None) -> dict:
@@ -223,7 +231,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
     folder) with its run config for PI (``seed-S-case-NNN.toml``: ``targetlock run --config`` runs the
     case again, ``--controller`` / ``--set knowledge.source=...`` with another controller). ``on_result(row)``
     is called as each run finishes, with a row of :data:`CASE_COLUMNS`."""
-    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
+    seeds = _as_seeds(seed)
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"run_robustness: seeds {list(seeds)}; allowed: one or more, each once")
     if "pi" not in controllers:
@@ -391,18 +399,26 @@ class RobustnessSpec:
     workers: int = param(0, lo=0, hi=512, doc="local Dask worker processes (0: in this process)")
 
 
+def check_seeds(seeds: tuple[int, ...], text: str | None = None) -> tuple[int, ...]:
+    """``seeds`` if there is at least one, each in [0, 2^63) and named once; else a ConfigError naming
+    ``--seed`` (as the user wrote it: ``text``)."""
+    from ..config import ConfigError
+    given = text if text is not None else ",".join(map(str, seeds))
+    if not seeds or any(not 0 <= s < 2 ** 63 for s in seeds):
+        raise ConfigError(f"--seed = {given!r}; allowed: a whole number in [0, 2^63) or a comma-separated list of them")
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"--seed = {given!r}: a seed is named twice (the same set would count twice)")
+    return seeds
+
+
 def parse_seeds(text: str) -> tuple[int, ...]:
-    """``--seed``: one seed or a comma-separated list (``0,23,204``), each in [0, 2^63)."""
+    """``--seed``: one seed or a comma-separated list (``0,23,204``), checked (:func:`check_seeds`)."""
     from ..config import ConfigError
     try:
         seeds = tuple(int(p) for p in str(text).split(",") if p.strip())
     except ValueError:
         raise ConfigError(f"--seed = {text!r}; allowed: a whole number in [0, 2^63) or a comma-separated list of them") from None
-    if not seeds or any(not 0 <= s < 2 ** 63 for s in seeds):
-        raise ConfigError(f"--seed = {text!r}; allowed: a whole number in [0, 2^63) or a comma-separated list of them")
-    if len(set(seeds)) != len(seeds):
-        raise ConfigError(f"--seed = {text!r}: a seed is named twice (the same set would count twice)")
-    return seeds
+    return check_seeds(seeds, text)
 
 
 def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: int | None = None,
@@ -417,11 +433,9 @@ def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: 
     ``summary.json``."""
     from ..config import ConfigError
     from .runfolder import RunFolder
-    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(s) for s in seed)
+    seeds = check_seeds(_as_seeds(seed))
     if not 1 <= n_cases <= 10000:
         raise ConfigError(f"--cases = {n_cases}; allowed: [1, 10000]")
-    if not seeds or any(s < 0 for s in seeds):
-        raise ConfigError(f"--seed = {','.join(map(str, seeds))}; allowed: [0, 2^63)")
     if workers is not None and not 1 <= workers <= 512:
         raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
     if out is None:
@@ -431,7 +445,8 @@ def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: 
         return _bench(n_cases, seeds, workers, controllers, folder)
 
 
-def _bench(n_cases: int, seeds: tuple[int, ...], workers: int | None, controllers: tuple[str, ...], folder) -> dict:
+def _bench(n_cases: int, seeds: tuple[int, ...], workers: int | None, controllers: tuple[str, ...],
+           folder: RunFolder | None) -> dict:
     """:func:`bench_robustness` after its checks, into the run folder ``folder`` (or none)."""
     if folder is None:
         r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers)
