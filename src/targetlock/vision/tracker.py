@@ -377,8 +377,9 @@ class TrackerSettings:
     lk_levels: int = param(3, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, frame-to-frame flow")
     key_levels: int = param(2, lo=0, hi=6, doc="Lucas-Kanade pyramid levels, keyframe flow (prediction-aligned)")
     key_flow_local: bool = param(False, doc="the keyframe flow runs on the regions with their local mean removed "
-                                           "(Gaussian, sigma 5 px): the light's fall-off changes across the window "
-                                           "as the tip moves, which biases the flow of faint texture")
+                                           "(Gaussian, sigma 5 px): removes the bias of faint texture's flow as the "
+                                           "tip approaches (most likely the light changing across the window); off: "
+                                           "it raised false locks on glints (docs/vision.md)")
     fb_max_px: float = param(1.0, unit="px", lo=0.01, hi=20.0, doc="largest forward-backward flow error of a kept feature")
     ransac_px: float = param(2.0, unit="px", lo=0.1, hi=20.0, doc="RANSAC inlier distance")
     min_inliers: int = param(8, lo=3, hi=500, doc="fewest RANSAC inliers for a valid motion estimate")
