@@ -560,6 +560,10 @@ class TrackerSettings:
                                           "when at least 3 corners passed the flow's checks and moved together (within "
                                           "3 px), their motion seeds one more attempt (fast motion that blurred the "
                                           "rest and left the phase correlation without a peak)")
+    relock_central: bool = param(True, doc="while lost near the edge of the view (the tracked scale or rotation "
+                                           "10 % or 10 degrees off the one the target had near the centre), the "
+                                           "local keyframe re-lock also tries the central scale and rotation "
+                                           "(first when it searches near the centre)")
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
@@ -1701,12 +1705,15 @@ class FeatureTracker(Tracker):
         # 2) keyframe -> this frame, predicted through the chain
         key = None
         current = None  # (key_to_pred, warped region) of the current keyframe, for the dense fallback
-        for kf, least in self._keyframe_candidates(anchor_to_pred, relock):
-            key_to_pred = anchor_to_pred @ _inv(kf.from_anchor)
+        views = self._relock_views(anchor_to_pred, pred) if relock else [anchor_to_pred]
+        for kf, least, key_to_pred in [(kf, least, a2p @ _inv(kf.from_anchor))
+                                       for a2p in views for kf, least in self._keyframe_candidates(a2p, relock)]:
             km, ksrc, kdst, wv = self._match_keyframe(view, kf, key_to_pred)
             if kf is self._key:
                 current = (key_to_pred, wv)
-            if km is not None and km[3] >= least:
+            # while lost, a keyframe alone needs 1.5 min_inliers (below): a weaker match leaves the next
+            # keyframe or view to try
+            if km is not None and km[3] >= (max(least, 1.5 * s.min_inliers) if relock else least):
                 key = (kf, km, kdst)
                 break
         est_chain = _apply(chain[0], self._pos) if chain is not None else None
@@ -2257,8 +2264,7 @@ class FeatureTracker(Tracker):
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
             views = [self._from_anchor]
-            sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
-            if abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0):
+            if self._central_differs():
                 # lost near the edge, where the distortion shrank the tracked scale: the target may
                 # come back at either scale (still compressed at the edge, as it was near the centre)
                 views.append(self._central_from_anchor)
@@ -2468,6 +2474,28 @@ class FeatureTracker(Tracker):
         if found is None or found[1] < self.settings.dense_reacquire_ncc:
             return None
         return found[0] + view.to_frame[:2, 2]
+
+    def _central_differs(self) -> bool:
+        """The view's scale or rotation when the target was last near the view's centre differs from the
+        last accepted frame's by more than 10 % or 10 degrees (lost near the edge, where the lens
+        distortion shrinks the tracked scale)."""
+        sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
+        return abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0)
+
+    def _relock_views(self, anchor_to_pred: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
+        """The anchor -> this frame transforms a re-lock around ``pred`` (px) tries: the last accepted
+        frame's scale and rotation moved to ``pred`` (``anchor_to_pred``), and, when it differs
+        (:meth:`_central_differs`), the central one moved there too, first if ``pred`` lies within
+        ``dense_central_radius`` of the view's centre. A target lost at the edge of the view, where the
+        lens distortion had shrunk it, comes back towards the centre at the scale it had there: the
+        keyframe's corners predicted at the edge's scale (0.66 on seed 1's retina `leave`) do not follow
+        (0-1 of 40, the place right to 0.5 px), at the central scale 8-12 of them do."""
+        if not self.settings.relock_central or not self._central_differs():
+            return [anchor_to_pred]
+        central = self._central_from_anchor.copy()
+        central[:2, 2] += pred - _apply(central, self._anchor.target)
+        near = np.hypot(*(pred - self._fov_centre)) <= self.settings.dense_central_radius * self._fov_radius
+        return [central, anchor_to_pred] if near else [anchor_to_pred, central]
 
     def _set_from_anchor(self, from_anchor: np.ndarray, est: np.ndarray) -> None:
         """Accept ``from_anchor`` (anchor -> this frame) for the target at ``est`` (px); also as the
