@@ -562,8 +562,10 @@ class TrackerSettings:
                                           "rest and left the phase correlation without a peak)")
     relock_central: bool = param(True, doc="while lost near the edge of the view (the tracked scale or rotation "
                                            "10 % or 10 degrees off the one the target had near the centre), the "
-                                           "local keyframe re-lock also tries the central scale and rotation "
-                                           "(first when it searches near the centre)")
+                                           "local keyframe re-lock a quarter window inside the view first tries the "
+                                           "scale and rotation the lens distortion gives there (interpolated with the "
+                                           "distance from the centre between the central ones and those at the loss); "
+                                           "not for a window of large_window_px or more")
     chain_only_jump_px: float = param(10.0, unit="px", lo=0.0, hi=1000.0,
                                       doc="a frame carried by the chain alone (keyframe unmatched) lies at most this "
                                           "far from the constant-velocity prediction, per frame interval")
@@ -1159,6 +1161,7 @@ class FeatureTracker(Tracker):
         self._anchor = self._key = kf
         self._from_anchor = np.eye(3)   # anchor frame -> last accepted frame (similarity)
         self._central_from_anchor = np.eye(3)  # ... the last accepted with the target near the view's centre
+        self._central_at = float(np.hypot(*(p - self._fov_centre)))  # px from the view's centre it was then
         self._prev = view               # last accepted frame's region ...
         self._prev_pts = kf.pts.copy()  # ... and the features to follow from it
         self.lost = False
@@ -2483,19 +2486,33 @@ class FeatureTracker(Tracker):
         return abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0)
 
     def _relock_views(self, anchor_to_pred: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
-        """The anchor -> this frame transforms a re-lock around ``pred`` (px) tries: the last accepted
-        frame's scale and rotation moved to ``pred`` (``anchor_to_pred``), and, when it differs
-        (:meth:`_central_differs`), the central one moved there too, first if ``pred`` lies within
-        ``dense_central_radius`` of the view's centre. A target lost at the edge of the view, where the
-        lens distortion had shrunk it, comes back towards the centre at the scale it had there: the
-        keyframe's corners predicted at the edge's scale (0.66 on seed 1's retina `leave`) do not follow
-        (0-1 of 40, the place right to 0.5 px), at the central scale 8-12 of them do."""
-        if not self.settings.relock_central or not self._central_differs():
+        """The anchor -> this frame transforms a re-lock around ``pred`` (px) tries: when the view's
+        scale or rotation at the loss differ from the central ones (:meth:`_central_differs`), first
+        the one the lens distortion gives at ``pred``'s distance from the view's centre, interpolated
+        (log-scale and angle, linearly in that distance) between the central one and the one at the
+        loss, then the last accepted frame's (``anchor_to_pred``: its scale and rotation moved to
+        ``pred``). A target lost at the edge of the view, where the distortion had shrunk it, comes
+        back towards the centre growing to the scale it had there: the keyframe's corners predicted at
+        the edge's scale (0.66 on seed 1's retina `leave`) do not follow (0-1 of 40, the place right to
+        0.5 px), at the central scale 8-12 of them do. The central scale further out, where it is as
+        wrong the other way, re-locked a large window 7.8 px off (seed 6's mucosa `leave` at 160 px;
+        the edge's scale re-locks it 4 frames later within 3.6 px), and a large window's match bent by
+        the distortion across it still re-locked 7.6 px off with the interpolated scale: not for a large
+        window, and only a quarter window inside the view."""
+        s = self.settings
+        if not s.relock_central or self._window >= s.large_window_px or not self._in_view(pred, inner=True) \
+                or not self._central_differs():
             return [anchor_to_pred]
-        central = self._central_from_anchor.copy()
-        central[:2, 2] += pred - _apply(central, self._anchor.target)
-        near = np.hypot(*(pred - self._fov_centre)) <= self.settings.dense_central_radius * self._fov_radius
-        return [central, anchor_to_pred] if near else [anchor_to_pred, central]
+        at_loss = float(np.hypot(*(self._pos - self._fov_centre)))
+        r = float(np.hypot(*(pred - self._fov_centre)))
+        k = float(np.clip((at_loss - r) / max(at_loss - self._central_at, 1.0), 0.0, 1.0))  # 1: central
+        if k < 0.1:
+            return [anchor_to_pred]
+        sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
+        c, sn = sc ** k * math.cos(k * ang), sc ** k * math.sin(k * ang)
+        there = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]) @ self._from_anchor
+        there[:2, 2] += pred - _apply(there, self._anchor.target)
+        return [there, anchor_to_pred]
 
     def _set_from_anchor(self, from_anchor: np.ndarray, est: np.ndarray) -> None:
         """Accept ``from_anchor`` (anchor -> this frame) for the target at ``est`` (px); also as the
@@ -2503,6 +2520,7 @@ class FeatureTracker(Tracker):
         self._from_anchor = from_anchor
         if np.hypot(*(est - self._fov_centre)) <= self.settings.dense_central_radius * self._fov_radius:
             self._central_from_anchor = from_anchor
+            self._central_at = float(np.hypot(*(est - self._fov_centre)))
 
     def _relocked(self, est: np.ndarray, kf: _Keyframe, key_to_cur: np.ndarray, view: _View, pts: np.ndarray,
                   conf: float) -> TrackResult:
