@@ -417,9 +417,9 @@ def test_a_target_lost_at_the_edge_of_the_view_is_relocked_at_the_scale_it_had_n
     comes back. Near the edge the lens distortion had shrunk the tracked scale (to ~0.66), and the local
     re-lock predicted the keyframe's corners at that scale where the target, coming back towards the
     centre, has its central scale again: none of the corners followed (seed 1: 0-1 of 40 with the place
-    right to 0.5 px), and it re-locked late or not at all. Trying the central scale too
-    (``relock_central``) finds 8-12 of them: re-locked 6 frames after it is back in view, where it took
-    11 and was lost again without."""
+    right to 0.5 px), and it re-locked late or not at all. Trying first the scale the distortion gives
+    where the re-lock searches (``relock_central``: between the central one and the loss's) finds 8-12
+    of them: re-locked 6 frames after it is back in view, where it took 11 and was lost again without."""
     target = PlanarTarget((0.2, 0.2), photo_texture("retina"), (0.0, 0.0))
     frames = render_sequence("leave", EvalSettings(photos=()), seed=5, target=target)
     visible = np.array([f.visible for f in frames[1:]])

@@ -1721,8 +1721,8 @@ class FeatureTracker(Tracker):
                 break
         est_chain = _apply(chain[0], self._pos) if chain is not None else None
         agree = math.inf  # how closely the chain and a keyframe's features agree (px)
-        if key is not None and (relock or chain is None) and key[1][3] < 1.5 * s.min_inliers:
-            key = None  # a keyframe alone, on a few features only: not trusted
+        if key is not None and chain is None and key[1][3] < 1.5 * s.min_inliers:
+            key = None  # a keyframe alone, on a few features only: not trusted (while lost: the loop above)
         dense = None
         disputed = False  # a dense match disagreed with the chain (on the retry)
         if key is None and chain is None and phased is not None and not relock and s.phase_dense \
@@ -2267,7 +2267,7 @@ class FeatureTracker(Tracker):
             kfs = [self._anchor] + [k for k in self._recent if k.sharp][-1:]
             self._dense_tpl = []
             views = [self._from_anchor]
-            if self._central_differs():
+            if self._central_offset() is not None:
                 # lost near the edge, where the distortion shrank the tracked scale: the target may
                 # come back at either scale (still compressed at the edge, as it was near the centre)
                 views.append(self._central_from_anchor)
@@ -2478,16 +2478,16 @@ class FeatureTracker(Tracker):
             return None
         return found[0] + view.to_frame[:2, 2]
 
-    def _central_differs(self) -> bool:
-        """The view's scale or rotation when the target was last near the view's centre differs from the
-        last accepted frame's by more than 10 % or 10 degrees (lost near the edge, where the lens
-        distortion shrinks the tracked scale)."""
+    def _central_offset(self) -> tuple[float, float] | None:
+        """Scale and rotation (rad) from the last accepted frame's view to the one when the target was
+        last near the view's centre, when they differ by more than 10 % or 10 degrees (lost near the
+        edge, where the lens distortion shrinks the tracked scale); else None."""
         sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
-        return abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0)
+        return (sc, ang) if abs(math.log(sc)) > math.log(1.1) or abs(ang) > math.radians(10.0) else None
 
     def _relock_views(self, anchor_to_pred: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
         """The anchor -> this frame transforms a re-lock around ``pred`` (px) tries: when the view's
-        scale or rotation at the loss differ from the central ones (:meth:`_central_differs`), first
+        scale or rotation at the loss differ from the central ones (:meth:`_central_offset`), first
         the one the lens distortion gives at ``pred``'s distance from the view's centre, interpolated
         (log-scale and angle, linearly in that distance) between the central one and the one at the
         loss, then the last accepted frame's (``anchor_to_pred``: its scale and rotation moved to
@@ -2500,15 +2500,16 @@ class FeatureTracker(Tracker):
         the distortion across it still re-locked 7.6 px off with the interpolated scale: not for a large
         window, and only a quarter window inside the view."""
         s = self.settings
-        if not s.relock_central or self._window >= s.large_window_px or not self._in_view(pred, inner=True) \
-                or not self._central_differs():
+        offset = self._central_offset() if s.relock_central and self._window < s.large_window_px \
+            and self._in_view(pred, inner=True) else None
+        if offset is None:
             return [anchor_to_pred]
         at_loss = float(np.hypot(*(self._pos - self._fov_centre)))
         r = float(np.hypot(*(pred - self._fov_centre)))
         k = float(np.clip((at_loss - r) / max(at_loss - self._central_at, 1.0), 0.0, 1.0))  # 1: central
         if k < 0.1:
             return [anchor_to_pred]
-        sc, ang = _scale_angle(self._central_from_anchor @ _inv(self._from_anchor))
+        sc, ang = offset
         c, sn = sc ** k * math.cos(k * ang), sc ** k * math.sin(k * ang)
         there = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]) @ self._from_anchor
         there[:2, 2] += pred - _apply(there, self._anchor.target)
