@@ -266,6 +266,26 @@ def test_a_hunt_about_a_resting_target_is_stopped_where_it_is(tmp_path):
     assert held["rms_px"] < hunting["rms_px"]
 
 
+def test_a_stated_nearest_distance_lets_a_far_step_go_at_pis_pace(tmp_path):
+    """Robustness set 405 case 47 again (a 135 px step at 10.6 cm, PI 6.5 px rms): sized for a target
+    that may be at 1 cm, the first steps are slow (27 px rms). A lab that states the target is at least
+    8 cm away (knowledge.nearest_depth), or an oracle that knows the distance, steps at PI's pace."""
+    from targetlock.experiments.robustness import case_config, draw_cases, score_run, write_waypoints
+
+    def rms(controller: str, nearest: float | None = None) -> float:
+        case = draw_cases(60, 405)[47]
+        path = tmp_path / "case.csv"
+        write_waypoints(case, path)
+        cfg = case_config(case, controller, path, 12.0, 405)
+        if nearest is not None:
+            cfg = dataclasses.replace(cfg, knowledge=dataclasses.replace(cfg.knowledge, nearest_depth=nearest))
+        return score_run(cfg)["rms_px"]
+
+    pi, unknown, stated = rms("pi"), rms("adaptive"), rms("adaptive", 0.08)
+    assert unknown > 2.0 * pi
+    assert stated < 1.3 * pi and rms("adaptive+oracle") < 1.3 * pi
+
+
 def test_a_far_step_is_not_crept_into_once_the_image_has_shown_j(tmp_path, monkeypatch):
     """Robustness set 405 case 47: a target appearing 135 px off centre at 10.6 cm on a looped shaft. The
     caution assumes the nearest distance's J until the fit is trusted, and the slow approach's motion is

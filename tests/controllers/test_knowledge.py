@@ -42,6 +42,18 @@ def test_the_knowledge_section_is_validated_and_kept_in_the_run_config():
     assert resolve_knowledge(cfg.knowledge, cfg.twin).depth == 0.02
 
 
+def test_the_range_the_target_can_be_in_is_known_and_an_oracle_knows_the_one_distance():
+    truth = plant()
+    nominal = resolve_knowledge(KnowledgeConfig(), truth)
+    assert nominal.depth_range == (0.01, 0.15) and "(1-15 cm)" in nominal.label
+    stated = resolve_knowledge(from_dict(RunConfig, {"knowledge": {"nearest_depth": 0.05, "depth": 0.08}}).knowledge, truth)
+    assert stated.depth_range == (0.05, 0.15) and stated.depth == 0.08
+    for source in ("oracle", "oracle-depth"):
+        assert resolve_knowledge(KnowledgeConfig(source=source), truth).depth_range == (0.03, 0.03)
+    with pytest.raises(ConfigError, match=r"knowledge.depth = 0.12 m lies outside knowledge.nearest_depth"):
+        from_dict(RunConfig, {"knowledge": {"farthest_depth": 0.06}})
+
+
 def test_a_partial_oracle_hands_over_that_item_only_and_says_so():
     truth = plant()
     nominal = resolve_knowledge(KnowledgeConfig(), truth)

@@ -47,7 +47,7 @@ J instead of assuming it, and steers with it:
   pushed through rather than counted as done.
 * **Supervisor and caution**: the model's prediction of the image motion our own motion causes is
   compared with what the camera then shows (``trust``). After engaging, until the estimate is
-  trusted, the controller acts as if the target were as near as ``adaptive_cautious_depth`` (the
+  trusted, the controller acts as if the target were as near as ``knowledge.nearest_depth`` (the
   largest Jacobian it is made for, i.e. the smallest, safest steps), fading with
   ``adaptive_caution_time``: the first blind move cannot overshoot by a near distance's 3–8×, and far
   away it is only slower for the first second or two. A tracker jump later lowers the trust and is
@@ -151,13 +151,13 @@ class AdaptiveController(Controller):
         carried = (self.tip_model.member, self.delay.delay) if self.engaged_before else (0, 0.0)
         self.engaged_before = True
         prior = self._prior(motor, k.depth)
-        # Bounds of J: from the farthest (15 cm, 25 % margin) to the nearest (1 cm, 50 % margin) distance
-        # the lock is made for.
-        far = self._prior(motor, max(0.15, k.depth))
-        near = self._prior(motor, min(0.01, k.depth))
-        floor = 0.75 * float(np.min(np.linalg.svd(far, compute_uv=False)))
+        # Bounds of J: from the farthest (25 % margin) to the nearest (50 % margin) distance the target
+        # can be at (knowledge.nearest_depth .. farthest_depth; the one true distance for an oracle).
+        nearest, farthest = min(k.depth_range[0], k.depth), max(k.depth_range[1], k.depth)
+        near = self._prior(motor, nearest)
+        floor = 0.75 * float(np.min(np.linalg.svd(self._prior(motor, farthest), compute_uv=False)))
         ceiling = 1.5 * float(np.max(np.linalg.svd(near, compute_uv=False)))
-        self.cautious_scale = float(math.sqrt(abs(np.linalg.det(self._prior(motor, min(cfg.adaptive_cautious_depth, k.depth))))))
+        self.cautious_scale = float(math.sqrt(abs(np.linalg.det(near))))
         self.jacobian = JacobianEstimator(prior, sv_min=floor, sv_max=ceiling)
         self.delay = DelayEstimator(initial=carried[1])
         self.trust = 0.0

@@ -61,9 +61,6 @@ class ControllerConfig:
                                doc="delay of the motor position to match the video (-1: the camera latency)")
     target_prediction: float = param(1.0, lo=0.0, hi=2.0,
                                      doc="pi-smith: fraction of the latency the target's own motion is extrapolated over")
-    adaptive_cautious_depth: float = param(0.01, unit="m", lo=0.005, hi=2.0,
-                                           doc="adaptive: distance assumed until its Jacobian estimate is trusted (the nearest it is made for: small, safe first steps; "
-                                               "set it to the nearest the target can be when the lab knows that)")
     adaptive_caution_time: float = param(2.0, unit="s", lo=0.01, hi=100.0,
                                          doc="adaptive: time constant with which that caution fades after engaging")
     adaptive_servo_gain: float = param(0.3, lo=0.01, hi=1.0, doc="adaptive: fraction of the predicted error removed per frame")

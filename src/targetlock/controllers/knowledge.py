@@ -8,6 +8,11 @@ way is labelled "oracle" (the run summary's ``knowledge`` field). ``"oracle-endo
 ``"oracle-latency"``, ``"oracle-depth"`` and ``"oracle-camera"`` (focal lengths) hand over that one item
 of the truth and the nominal rest: which missing knowledge costs a controller how much (labelled so).
 
+The target's distance is known as an assumed value (``depth``, the prior Jacobian's) and the range it
+can be in (``nearest_depth`` .. ``farthest_depth``, by default 1-15 cm): the lock sizes its first steps
+for the nearest, before the image has shown it the Jacobian. A source that knows the depth (``oracle``,
+``oracle-depth``) knows that range as the one true distance.
+
 A lab that has identified its scope hands that to the controller with ``endoscope_file``: a TOML whose
 ``[twin.endoscope]`` (what ``targetlock identify`` writes, ``fitted.toml``) or ``[knowledge.endoscope]``
 table overrides the preset's endoscope parameters. (Handing ``adaptive`` its true endoscope and nothing
@@ -45,8 +50,20 @@ class KnowledgeConfig:
     latency: float = param(0.4, unit="s", lo=0.0, hi=5.0,
                            doc="assumed video latency (report: 0.4 s); frames are stamped with it, as a rig stamps them")
     depth: float = param(0.12, unit="m", lo=0.005, hi=2.0, doc="assumed target distance (report: 12 cm)")
+    nearest_depth: float = param(0.01, unit="m", lo=0.005, hi=2.0,
+                                 doc="nearest the target can be: the lock's first steps, before it has learned the image "
+                                     "Jacobian, are sized for it (default: 1 cm, the nearest the lock is made for; a lab "
+                                     "that knows its working distance sets it there)")
+    farthest_depth: float = param(0.15, unit="m", lo=0.005, hi=2.0,
+                                  doc="farthest the target can be (bounds the smallest image Jacobian the lock accepts)")
     fx: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along x")
     fy: float = param(300.0, unit="px", lo=1.0, hi=1e5, doc="assumed focal length along y")
+
+    def check(self, prefix: str = "") -> None:
+        if not self.nearest_depth <= self.depth <= self.farthest_depth:
+            raise ConfigError(f"{prefix}depth = {self.depth:g} m lies outside {prefix}nearest_depth .. "
+                              f"{prefix}farthest_depth = {self.nearest_depth:g} .. {self.farthest_depth:g} m; "
+                              f"allowed: the assumed distance within the range the target can be at")
 
 
 @dataclass(frozen=True)
@@ -58,6 +75,7 @@ class Knowledge:
     source: str                   # one of KNOWLEDGE_SOURCES
     preset: str                   # the endoscope preset these parameters came from
     endoscope_from: str = ""      # what overrode the preset's endoscope parameters, if anything (a file's name)
+    depth_range: tuple[float, float] = (0.01, 0.15)   # m, the nearest and farthest the target can be
 
     @property
     def latency(self) -> float:
@@ -69,7 +87,9 @@ class Knowledge:
         if self.source == "oracle":
             return "oracle (the plant's true parameters)"
         scope = f"preset {self.preset}" + (f" + {self.endoscope_from}" if self.endoscope_from else "")
-        nominal = f"{scope}, latency {self.latency:g} s, depth {100 * self.depth:g} cm, f {self.camera.fx:g} px"
+        near, far = (100 * d for d in self.depth_range)
+        nominal = (f"{scope}, latency {self.latency:g} s, depth {100 * self.depth:g} cm ({near:g}-{far:g} cm), "
+                   f"f {self.camera.fx:g} px")
         if self.source.startswith("oracle-"):
             item = self.source.removeprefix("oracle-")
             return f"oracle {item} only (the plant's true {item}; otherwise {nominal})"
@@ -80,9 +100,10 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     """The assumptions a controller gets. Only the image size and principal point are taken from the
     plant's camera (they are read off the image itself); everything else is the configured nominal,
     unless ``k.source`` is ``"oracle"`` (all of the plant's truth) or ``"oracle-<item>"`` (that item's)."""
+    truth = plant.scene.distance
     if k.source == "oracle":
-        return Knowledge(endoscope=plant.endoscope, camera=plant.camera, depth=plant.scene.distance, source="oracle",
-                         preset=plant.preset)
+        return Knowledge(endoscope=plant.endoscope, camera=plant.camera, depth=truth, source="oracle",
+                         preset=plant.preset, depth_range=(truth, truth))
     item = k.source.removeprefix("oracle-") if k.source.startswith("oracle-") else ""
     endoscope = plant.endoscope if item == "endoscope" else twin_config(k.preset).endoscope
     from_file = k.endoscope_file if item != "endoscope" else ""
@@ -92,7 +113,9 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
                                  cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps, fx=fx, fy=fy,
                                  latency=plant.camera.latency if item == "latency" else k.latency)
-    return Knowledge(endoscope=endoscope, camera=camera, depth=plant.scene.distance if item == "depth" else k.depth,
+    # A controller that knows the depth knows the range it can be in: that one distance.
+    depth, depth_range = (truth, (truth, truth)) if item == "depth" else (k.depth, (k.nearest_depth, k.farthest_depth))
+    return Knowledge(endoscope=endoscope, camera=camera, depth=depth, depth_range=depth_range,
                      source=k.source, preset=plant.preset if item == "endoscope" else k.preset,
                      endoscope_from=Path(from_file).name if from_file else "")
 

@@ -217,7 +217,7 @@ EXPLANATION = """## Reading the numbers, and where ours differs from the report
   It keeps the target in view at 1–2 cm where every fixed-gain controller loses it, and on the
   report's paths it is the best controller that does not know the plant. Its costs: slower first
   seconds far away (the caution: until its estimate is trusted it steps as if the target were 1 cm
-  away; a lab that knows the nearest the target can be sets `controller.adaptive_cautious_depth` there:
+  away; a lab that knows the nearest the target can be sets `knowledge.nearest_depth` there:
   with 0.7x the true distance stated, six robustness sets have 4 cases worse than 1.1x PI instead of 15,
   and a median of 16.2 px instead of 21.7 at 6-15 cm); on a slowly drifting target it leads the drift only once the
   target's own motion (the image less the modelled own motion) has been a clear straight line for
