@@ -387,14 +387,16 @@ def _vision_eval(args: argparse.Namespace) -> int:
                    "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"],
                    "tracker": settings.tracker, "seed": opts.seed, "sequences": res["sequences"],
                    "content": res["content"], "references": res["references"],
-                   "selection_failures": o["selection_failures"], "run_folder": str(run.path)}
+                   "selection_failures": o["selection_failures"], "selection_warnings": o["selection_warnings"],
+                   "run_folder": str(run.path)}
         run.write_summary(summary)
     print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames): "
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
     for c, m in res["content"].items():
         print(f"  {c:>9}: tracked {m['tracked_fraction']:.3f}, delta_avg {m['delta_avg']:.3f}, "
-              f"false locks {m['false_lock_fraction']:.3f}, selection failures {m['selection_failures']}")
+              f"false locks {m['false_lock_fraction']:.3f}, selection failures {m['selection_failures']}, "
+              f"selections with a warning {m['selection_warnings']}")
     for who, r in res["references"].items():
         m = r["overall"]
         print(f"  reference {who}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "

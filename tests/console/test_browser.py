@@ -117,6 +117,23 @@ def test_click_selects_target_where_clicked(page, session):
     assert near()
 
 
+def test_a_click_that_cannot_be_tracked_says_why_and_keeps_the_target(page, session):
+    cam = session.cfg.twin.camera
+    x, y = cam.cx + 90.0, cam.cy + 55.0
+    _click_image(page, x, y)
+    page.wait_for_function("document.getElementById('selection').textContent.startsWith('target selected')",
+                           timeout=15000)
+    _click_image(page, 4.0, 4.0)              # the dark corner outside the endoscope's round view
+    page.wait_for_function("document.getElementById('selection').textContent.startsWith('selection failed')",
+                           timeout=15000)
+    text = page.locator("#selection").inner_text()
+    assert "field of view" in text and "still following the target selected before" in text
+    n0 = page.evaluate("window.tl.frames")
+    page.wait_for_function(f"window.tl.frames >= {n0 + 5}", timeout=15000)
+    f = _frame(page)
+    assert f["valid"] and math.hypot(f["x"] - x, f["y"] - y) < 6.0
+
+
 def test_engage_brings_error_down(page, session):
     cam = session.cfg.twin.camera
     x, y = cam.cx - 80.0, cam.cy + 60.0

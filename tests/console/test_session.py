@@ -89,3 +89,28 @@ def test_tuning_and_recording_keep_the_scope_the_running_lock_identified(tmp_pat
     summary = session.record_stop()
     path = Path(summary["run_folder"]) / summary["identified_scope"]
     assert tomllib.loads(path.read_text())["knowledge"]["endoscope"] == to_dict(identified)
+
+
+def test_a_selection_that_cannot_be_tracked_says_why_and_keeps_the_target():
+    """A click on a spot the tracker cannot follow (here the dark corner outside the round view) says why
+    and loses nothing: the target selected before is still followed on the next frames."""
+    from targetlock.console.session import TapTracker
+    from targetlock.vision import FeatureTracker, PlanarTarget, Renderer, RenderSettings, endoscope_camera, make_pose
+
+    cam = endoscope_camera()
+    renderer = Renderer(cam, RenderSettings(), PlanarTarget.mucosa(seed=3), seed=11)
+    point = (0.003, 0.001)                    # m on the tissue plane
+
+    def frame(x: float):
+        return renderer.render(np.eye(4), make_pose((x, 0.0, 0.05), (0.0, 0.0, 0.0)), point_m=point)
+
+    tap = TapTracker(FeatureTracker())
+    first = frame(0.0)
+    assert tap.select(first.image, first.truth_px, 96) and tap.failure is None and not tap.kept_previous
+    tap.update(first.image, 0.0)
+    assert not tap.select(first.image, (3.0, 3.0), 96)
+    assert "field of view" in tap.failure and tap.kept_previous and not tap.last_selection_ok
+    for k in range(1, 6):                     # the view moves on: the old target is still tracked
+        f = frame(0.0004 * k)
+        r = tap.update(f.image, 0.05 * k)
+        assert r.valid and np.hypot(*(r.position_px - f.truth_px)) < 2.0

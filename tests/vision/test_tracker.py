@@ -184,3 +184,28 @@ def test_orb_alone_reacquires_within_its_period_of_the_return(renderer, sel_pose
     assert all(r.valid and _err(r, f) < 2.0 for r, f in zip(res[back:], frames[back + 1:]))
     assert not _false_locks(res, frames[1:])
     assert tr.stats["orb_searches"] >= 1
+
+
+def _gray_bgr(img):
+    import cv2
+    return cv2.cvtColor(np.clip(img, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def test_a_selection_warns_when_the_target_may_be_hard_to_follow():
+    """Selected, but said to be hard to follow (the console shows it): texture that runs one way (stripes,
+    an edge, a rim: the window may slide along it) and a window with barely enough corners. A textured
+    window gets no warning, and a new selection clears the last one's warning."""
+    import cv2
+    rng = np.random.default_rng(0)
+    h, w, p = 480, 640, (320.0, 240.0)
+    stripes = 128 + 60 * np.sin(2 * np.pi * np.arange(w) / 9)[None, :] + rng.normal(0, 3, (h, w))
+    texture = cv2.GaussianBlur(rng.normal(128, 60, (h, w)), (0, 0), 2.0)
+    dots = np.full((h, w), 120.0)
+    for i in range(4):                        # 16 dark dots, one corner each, on a plain ground
+        for j in range(4):
+            cv2.circle(dots, (300 + 14 * i, 220 + 14 * j), 3, 40, -1)
+    tr = FeatureTracker()
+    assert tr.select(_gray_bgr(stripes), p, 80) and "runs one way" in tr.warning
+    assert tr.select(_gray_bgr(dots), p, 80) and "only" in tr.warning and "trackable corners" in tr.warning
+    assert tr.select(_gray_bgr(texture), p, 80) and tr.warning is None and tr.failure is None
+    assert not tr.fresh().select(_gray_bgr(np.full((h, w), 120.0)), p, 80)

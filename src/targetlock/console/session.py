@@ -190,17 +190,30 @@ class TapTracker(Tracker):
         self._slot: Frame | None = None
         self._seq = 0
         self._request: tuple[float, float, int] | None = None
-        self.selected_ok: bool | None = None
+        self.selected_ok: bool | None = None      # a target has been selected (None: none tried yet)
+        self.last_selection_ok: bool | None = None  # the newest selection succeeded
+        self.kept_previous = False                # it failed and the target selected before is kept
         self.last: TrackResult | None = None
 
     def request_select(self, x: float, y: float, window_px: int | None = None) -> None:
         with self._lock:
             self._request = (float(x), float(y), int(window_px or self.window_px))
 
+    def fresh(self) -> "TapTracker":
+        return TapTracker(self.inner.fresh(), self.window_px)
+
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
-        self.window_px = int(window_px)
-        self.selected_ok = self.inner.select(frame_bgr, point_px, window_px)
-        return self.selected_ok
+        """Select on a fresh tracker and keep it only if the selection succeeds: a click on a spot
+        that cannot be tracked says why (``failure``) and the target tracked until then is kept."""
+        trial = self.inner.fresh()
+        ok = trial.select(frame_bgr, point_px, window_px)
+        self.failure, self.warning = trial.failure, trial.warning
+        if ok:
+            self.inner, self.window_px = trial, int(window_px)
+        self.kept_previous = not ok and bool(self.selected_ok)
+        self.selected_ok = ok or bool(self.selected_ok)
+        self.last_selection_ok = ok
+        return ok
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         with self._lock:
@@ -587,6 +600,7 @@ class ConsoleSession:
             "tracker": None if tr is None else {"valid": bool(tr.valid), "lost": bool(tr.lost),
                                                 "confidence": float(tr.confidence),
                                                 "selected": None if self.tap is None else self.tap.selected_ok},
+            "selection": self._selection_status(),
             "controller": to_dict(self.switch.cfg),
             "controllers": list(CONTROLLERS),
             "target_path": self.rig.scene.path if self.twin else None,
@@ -594,6 +608,14 @@ class ConsoleSession:
             "recording": self._finishing if rec is None else str(rec[0].path),
             "actions": list(self.actions)[-8:],
         }
+
+    def _selection_status(self) -> dict | None:
+        """The newest selection from the page: whether it took, why not, and any warning (None before one)."""
+        tap = self.tap
+        if tap is None or tap.last_selection_ok is None:
+            return None
+        return {"ok": tap.last_selection_ok, "failure": tap.failure, "warning": tap.warning,
+                "kept_previous": tap.kept_previous}
 
     def _mocap_status(self) -> dict:
         """Connected (a sample younger than 0.5 s) and sample rate (1/s) of the rig's NatNet client."""

@@ -277,6 +277,7 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
     m["fps_lost"] = n_lost / (dt - dt_lock) if n_lost and dt > dt_lock else float("nan")
     m["selected"] = bool(ok)
     m["selection_failure"] = tracker.failure
+    m["selection_warning"] = tracker.warning if ok else None
     return m, results, dt, dt_lock, n_lock
 
 
@@ -288,7 +289,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     trackers on the same frames, score them.
 
     Returns a JSON-ready dict: ``overall`` (the tracker's metrics pooled over all scored frames,
-    plus ``fps``, ``render_ms`` and ``selection_failures``), ``sequences`` (per sequence; keys
+    plus ``fps``, ``render_ms``, ``selection_failures`` and ``selection_warnings``: selections that
+    succeeded with a :attr:`~targetlock.vision.tracker.Tracker.warning`), ``sequences`` (per sequence; keys
     ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
     ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
     ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
@@ -332,13 +334,14 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
                     tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
                     m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
                                                                    cfg.threshold_px)
-                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0])
+                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0])
                     acc[0] += frames[1:]
                     acc[1] += results
                     acc[2] += dt
                     acc[3] += dt_lock
                     acc[4] += n_lock
                     acc[5] += not m["selected"]
+                    acc[6] += m["selection_warning"] is not None
                     if who != "tracker":
                         ref_seq[who][key] = m
                     else:
@@ -359,6 +362,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
         n_lost = len(frames) - n_lock
         m["fps_lost"] = n_lost / (t - t_lock) if n_lost and t > t_lock else float("nan")
         m["selection_failures"] = int(sum(a[5] for a in accs))
+        m["selection_warnings"] = int(sum(a[6] for a in accs))
         return m
 
     all_contents = [c for c, _ in contents]

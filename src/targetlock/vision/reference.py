@@ -54,6 +54,9 @@ class OpenCVTracker(Tracker):
         self._cv = None
         self._offset = np.zeros(2)
 
+    def fresh(self) -> "OpenCVTracker":
+        return OpenCVTracker(self.name)
+
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         p = np.asarray(point_px, float).reshape(2)
         half = window_px / 2
@@ -82,6 +85,9 @@ class PlainLKTracker(Tracker):
     def __init__(self, min_points: int = 6) -> None:
         self.min_points = min_points
         self._prev = None
+
+    def fresh(self) -> "PlainLKTracker":
+        return PlainLKTracker(self.min_points)
 
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         gray = cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY)

@@ -186,7 +186,13 @@ function showStatus(s) {
   if (s.target_path && document.activeElement !== $("path")) $("path").value = s.target_path;
   if (!tuneFilled) fillTune(s.controller, s.controllers);
   const lp = tl.latencies.slice(-100).sort((a, b) => a - b);
-  const tr = s.tracker;
+  const tr = s.tracker, sel = s.selection, sm = $("selection");
+  if (!sel) { sm.textContent = ""; sm.className = "selmsg"; }
+  else if (!sel.ok) {
+    sm.textContent = "selection failed: " + sel.failure + (sel.kept_previous ? " (still following the target selected before)" : "");
+    sm.className = "selmsg fault";
+  } else if (sel.warning) { sm.textContent = "target selected, but " + sel.warning; sm.className = "selmsg warn"; }
+  else { sm.textContent = "target selected"; sm.className = "selmsg ok"; }
   $("status").textContent =
     `rig ${s.rig}  t ${fmt(s.time, 1)} s  ${s.running ? "loop running" : "LOOP STOPPED " + (s.error || "")}\n` +
     `drives: ${d.enabled ? "enabled" : "disabled"}  homed ${d.homed}  fault ${d.fault || "none"}  holding ${d.holding}\n` +
