@@ -1183,7 +1183,7 @@ class FeatureTracker(Tracker):
 
     def _selection_warning(self, n_features: int, isotropy: float | None) -> str | None:
         """What may make a selected target hard to follow (one line), None if nothing. On vision-eval
-        seeds 0-12 (1,170 sequences, in-view frames tracked, mean per sequence): windows with fewer than
+        seeds 0-12 (468 sequences, in-view frames tracked, mean per sequence): windows with fewer than
         3x min_inliers corners 0.55 (15 sequences), more 0.95; windows still edge-like after the context
         widening 0.86 (61), the rest 0.95."""
         notes = []
