@@ -384,6 +384,8 @@ def _vision_eval(args: argparse.Namespace) -> int:
             res = evaluate(settings, seed=opts.seed, progress=progress)
         o = res["overall"]
         summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
+                   "tracked_in_view_fraction": o["tracked_in_view_fraction"],
+                   "tracked_in_view_unwarned": o["tracked_in_view_unwarned"],
                    "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"],
                    "tracker": settings.tracker, "seed": opts.seed, "sequences": res["sequences"],
                    "content": res["content"], "references": res["references"],
@@ -394,9 +396,10 @@ def _vision_eval(args: argparse.Namespace) -> int:
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
     for c, m in res["content"].items():
-        print(f"  {c:>9}: tracked {m['tracked_fraction']:.3f}, delta_avg {m['delta_avg']:.3f}, "
-              f"false locks {m['false_lock_fraction']:.3f}, selection failures {m['selection_failures']}, "
-              f"selections with a warning {m['selection_warnings']}")
+        print(f"  {c:>9}: tracked {m['tracked_fraction']:.3f} (in view {m['tracked_in_view_fraction']:.3f}; "
+              f"{m['tracked_in_view_unwarned']:.3f} where the selection warned of nothing), "
+              f"delta_avg {m['delta_avg']:.3f}, false locks {m['false_lock_fraction']:.3f}, "
+              f"selection failures {m['selection_failures']}, selections with a warning {m['selection_warnings']}")
     for who, r in res["references"].items():
         m = r["overall"]
         print(f"  reference {who}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "

@@ -28,6 +28,7 @@ def test_scoring_rules():
                _res((90, 50))]             # occluded, valid but far: wrong (false lock)
     m = score(frames, results, threshold_px=8.0)
     assert m["tracked_fraction"] == pytest.approx(3 / 6)
+    assert m["tracked_in_view_fraction"] == pytest.approx(1 / 3)   # issue 14's goal: visible frames only
     assert m["false_lock_fraction"] == pytest.approx(2 / 6)
     assert m["median_px"] == pytest.approx(10.25)          # errors of valid visible estimates: 0.5, 20
     # delta_avg over visible frames (4, 8, 16, 32, 64 px): [1/3, 1/3, 1/3, 2/3, 2/3]
@@ -60,6 +61,10 @@ def test_evaluate_short_run_is_json_ready_and_good():
     assert o["median_px"] < 1.0 and o["tracked_fraction"] >= 0.95 and o["false_lock_fraction"] == 0.0
     assert o["fps"] > 0 and o["render_ms"] > 0  # speed goals: `targetlock bench vision`, not a timed test
     assert o["selection_failures"] == 0 and all(m["selection_failure"] is None for m in out["sequences"].values())
+    warned = [k for k, m in out["sequences"].items() if m["selection_warning"] is not None]
+    assert o["selection_warnings"] == len(warned)
+    if not warned:                       # then the unwarned share is the whole in-view share
+        assert o["tracked_in_view_unwarned"] == pytest.approx(o["tracked_in_view_fraction"])
     for m in out["sequences"].values():
         assert m["selected"] and 0.0 <= m["delta_avg"] <= 1.0
 

@@ -32,7 +32,8 @@ Scoring rules (per frame after the selection frame; ``threshold_px`` = 8 px):
   tracker reports no valid estimate (valid=False) **or** a valid estimate within the threshold (a
   tracker may legitimately infer a covered point from its surroundings); a valid estimate farther
   away is wrong (a false lock).
-* ``tracked_fraction``: correct frames / all frames. ``median_px``, ``p95_px``: errors of valid
+* ``tracked_fraction``: correct frames / all frames; ``tracked_in_view_fraction``: visible frames
+  with a valid estimate within the threshold / visible frames (issue 14's goal). ``median_px``, ``p95_px``: errors of valid
   estimates on visible frames. ``delta_avg``: on visible frames, the fraction of frames with an
   error below 4, 8, 16, 32, 64 px, averaged (TAP-Vid / STIR style; an invalid estimate counts as
   a miss at every threshold). ``false_lock_fraction``: valid estimates farther than the threshold
@@ -227,7 +228,7 @@ def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict
     n = len(frames)
     err = np.full(n, np.inf)
     valid = np.zeros(n, bool)
-    vis = np.array([f.visible for f in frames])
+    vis = np.array([f.visible for f in frames], dtype=bool)
     for i, (f, r) in enumerate(zip(frames, results)):
         valid[i] = bool(r.valid)
         if r.valid:
@@ -243,6 +244,7 @@ def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict
         "median_px": float(np.median(ev)) if len(ev) else float("nan"),
         "p95_px": float(np.percentile(ev, 95)) if len(ev) else float("nan"),
         "tracked_fraction": float(np.mean(correct)) if n else float("nan"),
+        "tracked_in_view_fraction": float(np.mean((valid & close)[vis])) if vis.any() else float("nan"),
         "delta_avg": float(np.mean(delta)),
         "false_lock_fraction": float(np.mean(valid & ~close)) if n else float("nan"),
     }
@@ -290,7 +292,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
 
     Returns a JSON-ready dict: ``overall`` (the tracker's metrics pooled over all scored frames,
     plus ``fps``, ``render_ms``, ``selection_failures`` and ``selection_warnings``: selections that
-    succeeded with a :attr:`~targetlock.vision.tracker.Tracker.warning`), ``sequences`` (per sequence; keys
+    succeeded with a :attr:`~targetlock.vision.tracker.Tracker.warning`, and ``tracked_in_view_unwarned``:
+    the in-view frames tracked on the sequences without one), ``sequences`` (per sequence; keys
     ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
     ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
     ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
@@ -330,11 +333,14 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
                 t_render += time.perf_counter() - t0
                 n_render += len(frames)
                 key = name if content == "mucosa" else f"{content}/{name}"
+                warned = False  # the tracker's selection on this sequence came with a warning (or failed)
                 for who in names:
                     tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
                     m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
                                                                    cfg.threshold_px)
-                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0])
+                    if who == "tracker":
+                        warned = m["selection_warning"] is not None or not m["selected"]
+                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
                     acc[0] += frames[1:]
                     acc[1] += results
                     acc[2] += dt
@@ -342,6 +348,9 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
                     acc[4] += n_lock
                     acc[5] += not m["selected"]
                     acc[6] += m["selection_warning"] is not None
+                    if not warned:
+                        acc[7] += frames[1:]
+                        acc[8] += results
                     if who != "tracker":
                         ref_seq[who][key] = m
                     else:
@@ -363,6 +372,9 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
         m["fps_lost"] = n_lost / (t - t_lock) if n_lost and t > t_lock else float("nan")
         m["selection_failures"] = int(sum(a[5] for a in accs))
         m["selection_warnings"] = int(sum(a[6] for a in accs))
+        # The sequences whose selection (by the tracker evaluated, for the references too) warned of nothing.
+        clear = score([f for a in accs for f in a[7]], [r for a in accs for r in a[8]], cfg.threshold_px)
+        m["tracked_in_view_unwarned"] = clear["tracked_in_view_fraction"]
         return m
 
     all_contents = [c for c, _ in contents]
