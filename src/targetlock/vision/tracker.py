@@ -690,7 +690,6 @@ class FeatureTracker(Tracker):
 
     def __init__(self, settings: TrackerSettings | None = None) -> None:
         self.settings = validate(settings or TrackerSettings())
-        self.warning = None
         s = self.settings
         self._win = (s.lk_window_px, s.lk_window_px)
         self._lk_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
@@ -2587,9 +2586,6 @@ class MarkerTracker(Tracker):
     # Marker coordinates: side = 1, centre (0, 0), x right, y down; corners in ArUco order.
     _UNIT = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]], np.float32)
 
-    def fresh(self) -> "MarkerTracker":
-        return MarkerTracker(self.settings, self.camera)
-
     def __init__(self, settings: MarkerSettings | None = None, camera: CameraParams | None = None) -> None:
         """``camera``: intrinsics with lens distortion; when given, the marker's corners are
         undistorted before the marker-to-image homography is fitted, so a point inside a large
@@ -2642,6 +2638,9 @@ class MarkerTracker(Tracker):
         h = cv2.getPerspectiveTransform(self._UNIT, self._undistorted(corners).astype(np.float32))
         p = cv2.perspectiveTransform(self._offset.reshape(1, 1, 2), h).reshape(2).astype(float)
         return self._distorted(p)
+
+    def fresh(self) -> "MarkerTracker":
+        return MarkerTracker(self.settings, self.camera)
 
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         p = np.asarray(point_px, float).reshape(2)
