@@ -192,7 +192,6 @@ class TapTracker(Tracker):
         self._request: tuple[float, float, int] | None = None
         self.selected_ok: bool | None = None      # a target has been selected (None: none tried yet)
         self.last_selection_ok: bool | None = None  # the newest selection succeeded
-        self.kept_previous = False                # it failed and the target selected before is kept
         self.last: TrackResult | None = None
 
     def request_select(self, x: float, y: float, window_px: int | None = None) -> None:
@@ -210,10 +209,14 @@ class TapTracker(Tracker):
         self.failure, self.warning = trial.failure, trial.warning
         if ok:
             self.inner, self.window_px = trial, int(window_px)
-        self.kept_previous = not ok and bool(self.selected_ok)
         self.selected_ok = ok or bool(self.selected_ok)
         self.last_selection_ok = ok
         return ok
+
+    @property
+    def kept_previous(self) -> bool:
+        """The newest selection failed and the target selected before it is still followed."""
+        return self.last_selection_ok is False and bool(self.selected_ok)
 
     def update(self, frame_bgr: np.ndarray, capture_time: float | None = None) -> TrackResult:
         with self._lock:
