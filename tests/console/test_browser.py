@@ -168,6 +168,24 @@ def test_gain_change_takes_effect_and_bad_gain_is_refused(page, session):
     assert any(a["action"] == "tune" and a.get("i_gain") == 150 for a in session.actions)
 
 
+def test_the_nearest_the_target_can_be_is_stated_on_the_page(page, session):
+    """A stated working distance reaches the controller's knowledge (its caution); one that contradicts
+    the assumed distance is refused with the config's message."""
+    assert page.input_value("input[name='knowledge.nearest_depth']") == "0.01"
+    page.fill("input[name='knowledge.nearest_depth']", "0.5")
+    n0 = page.evaluate("window.tl.errors.length")
+    page.locator("#apply").click()
+    page.wait_for_function(f"window.tl.errors.length > {n0}", timeout=15000)
+    assert "knowledge.depth = 0.12 m lies outside knowledge.nearest_depth" in page.locator("#message").inner_text()
+    assert session.cfg.knowledge.nearest_depth == 0.01
+    page.fill("input[name='knowledge.nearest_depth']", "0.05")
+    page.locator("#apply").click()
+    _wait(lambda: session.switch.inner.knowledge.depth_range == (0.05, 0.15), 15, "the stated distance")
+    page.wait_for_function("window.tl.status.knowledge.nearest_depth === 0.05", timeout=15000)
+    assert "target 5.0-15.0 cm away" in page.locator("#status").inner_text()
+    assert any(a["action"] == "tune" and a.get("knowledge.nearest_depth") == 0.05 for a in session.actions)
+
+
 def test_stop_key_disables_drives_until_explicit_enable(page, session):
     if not session.switch.locked:
         page.locator("#engage").click()

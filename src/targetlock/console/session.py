@@ -49,7 +49,7 @@ from ..rig.base import Drives, Observation
 from ..vision.tracker import Tracker, TrackResult
 
 __all__ = ["ConsoleSession", "LockSwitch", "ConsoleDrives", "TapTracker", "MovableScene", "Frame",
-           "TARGET_PATHS", "TUNABLE"]
+           "TARGET_PATHS", "TUNABLE", "TUNABLE_KNOWLEDGE"]
 
 log = logging.getLogger("targetlock.console")
 
@@ -59,6 +59,10 @@ TARGET_PATHS = ("static", "linear", "ellipse")
 TUNABLE = ("kind", "i_gain", "p_gain", "hc_width", "hc2_slope", "hc2_offset_deg", "hc_threshold_px", "tip_gain",
            "ik_damping", "target_prediction", "max_rate")
 """Controller settings the page may change while running (names of :class:`ControllerConfig` fields)."""
+TUNABLE_KNOWLEDGE = ("nearest_depth", "farthest_depth")
+"""What the controller assumes that the page may change (``knowledge.<name>`` in a tune request): the range
+the target can be in, which a clinician's engineer may know (e.g. "at least 3 cm away") better than the
+config did."""
 
 PLOT_COLUMNS = ("t", "err_x", "err_y", "err", "true_err", "motor_x_deg", "motor_y_deg", "tip_x_deg", "tip_y_deg")
 """One plot row per tick: loop time (s), tracked error (px), true error (px, twin), angles (deg)."""
@@ -484,14 +488,23 @@ class ConsoleSession:
         self._act(who, "enable")
 
     def tune(self, changes: dict, who: str = "?") -> dict:
-        """Change controller settings (names in :data:`TUNABLE`); validated like the config; returns the new settings."""
-        unknown = sorted(set(changes) - set(TUNABLE))
+        """Change controller settings (names in :data:`TUNABLE`) and what it assumes (``knowledge.<name>``,
+        names in :data:`TUNABLE_KNOWLEDGE`); validated like the config; returns the new controller settings."""
+        knowledge = {k.removeprefix("knowledge."): v for k, v in changes.items() if k.startswith("knowledge.")}
+        controller = {k: v for k, v in changes.items() if not k.startswith("knowledge.")}
+        unknown = sorted(set(controller) - set(TUNABLE))
         if unknown:
             raise ConfigError(f"controller.{unknown[0]} cannot be changed while running; allowed: {', '.join(TUNABLE)}")
+        unknown = sorted(set(knowledge) - set(TUNABLE_KNOWLEDGE))
+        if unknown:
+            raise ConfigError(f"knowledge.{unknown[0]} cannot be changed while running; allowed: "
+                              f"{', '.join('knowledge.' + k for k in TUNABLE_KNOWLEDGE)}")
         data = to_dict(self.switch.cfg)
-        data.update(changes)
+        data.update(controller)
         new_cfg = validate(from_dict(type(self.switch.cfg), data, prefix="controller."), prefix="controller.")
-        cfg = dataclasses.replace(self.cfg, controller=new_cfg)
+        new_knowledge = validate(from_dict(type(self.cfg.knowledge), {**to_dict(self.cfg.knowledge), **knowledge},
+                                           prefix="knowledge."), prefix="knowledge.")
+        cfg = dataclasses.replace(self.cfg, controller=new_cfg, knowledge=new_knowledge)
         # The new controller assumes the scope the running lock identified, if it did: same scope, new gains.
         ctrl = build_controller(cfg, self.rig, identified=self.switch.learned_endoscope())
         self._warm_up(ctrl)
@@ -605,6 +618,7 @@ class ConsoleSession:
                                                 "selected": None if self.tap is None else self.tap.selected_ok},
             "selection": self._selection_status(),
             "controller": to_dict(self.switch.cfg),
+            "knowledge": {k: getattr(self.cfg.knowledge, k) for k in ("depth", *TUNABLE_KNOWLEDGE)},
             "controllers": list(CONTROLLERS),
             "target_path": self.rig.scene.path if self.twin else None,
             "target_paths": list(TARGET_PATHS) if self.twin else [],

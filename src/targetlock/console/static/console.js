@@ -45,10 +45,14 @@ $("path").onchange = () => act("target-path", { path: $("path").value });
 
 // ------------------------------------------------------------------ tuning
 let tuneFilled = false;
-function fillTune(c, kinds) {
+function fillTune(c, kinds, k) {
   const f = $("tune");
-  if (!$("kind").options.length) for (const k of kinds) $("kind").add(new Option(k, k));
-  for (const el of f.elements) if (el.name && c[el.name] !== undefined && document.activeElement !== el) el.value = c[el.name];
+  if (!$("kind").options.length) for (const name of kinds) $("kind").add(new Option(name, name));
+  for (const el of f.elements) {
+    if (!el.name || document.activeElement === el) continue;
+    const v = el.name.startsWith("knowledge.") ? (k || {})[el.name.slice(10)] : c[el.name];
+    if (v !== undefined) el.value = v;
+  }
   tuneFilled = true;
 }
 $("tune").addEventListener("submit", async (e) => {
@@ -59,7 +63,7 @@ $("tune").addEventListener("submit", async (e) => {
     body[el.name] = el.type === "number" ? Number(el.value) : el.value;
   }
   const j = await act("tune", body);
-  if (j) { say("controller " + j.controller.kind + " applied"); fillTune(j.controller, []); }
+  if (j) { say("controller " + j.controller.kind + " applied"); fillTune(j.controller, [], null); }
 });
 
 // ------------------------------------------------------------------ view: frames, overlay, selection
@@ -184,7 +188,7 @@ function showStatus(s) {
   for (const el of document.querySelectorAll(".twin-only")) el.style.display = s.rig === "twin" ? "" : "none";
   if (!$("path").options.length) for (const p of s.target_paths) $("path").add(new Option(p, p));
   if (s.target_path && document.activeElement !== $("path")) $("path").value = s.target_path;
-  if (!tuneFilled) fillTune(s.controller, s.controllers);
+  if (!tuneFilled) fillTune(s.controller, s.controllers, s.knowledge);
   const lp = tl.latencies.slice(-100).sort((a, b) => a - b);
   const tr = s.tracker, sel = s.selection, sm = $("selection");
   if (!sel) { sm.textContent = ""; sm.className = "selmsg"; }
@@ -200,7 +204,8 @@ function showStatus(s) {
     `tracker: ${tr ? (tr.lost ? "lost" : tr.valid ? "tracking" : "missed") + " conf " + fmt(tr.confidence, 2) : "none"}\n` +
     `frames ${fmt(s.frame_rate, 1)} fps  video latency ${fmt(s.latency_ms, 0)} ms  to screen p50 ${lp.length ? fmt(lp[lp.length >> 1], 0) : "-"} ms\n` +
     `loop ${fmt(s.loop.rate_hz, 0)} Hz  lateness p50 ${fmt(s.loop.jitter_p50_ms, 2)} p99 ${fmt(s.loop.jitter_p99_ms, 2)} max ${fmt(s.loop.jitter_max_ms, 2)} ms  tick ${fmt(s.loop.tick_ms_p50, 2)} ms\n` +
-    `controller ${s.controller.kind}  I ${s.controller.i_gain}  P ${s.controller.p_gain}` + (s.recording ? `\nRECORDING into ${s.recording}` : "");
+    `controller ${s.controller.kind}  I ${s.controller.i_gain}  P ${s.controller.p_gain}  ` +
+    `target ${fmt(100 * s.knowledge.nearest_depth, 1)}-${fmt(100 * s.knowledge.farthest_depth, 1)} cm away (assumed ${fmt(100 * s.knowledge.depth, 1)})` + (s.recording ? `\nRECORDING into ${s.recording}` : "");
   $("actions").innerHTML = "";
   for (const a of s.actions.slice().reverse()) { const li = document.createElement("li"); li.textContent = `${a.time.slice(11, 23)} ${a.action} ${a.who}`; $("actions").appendChild(li); }
 }
