@@ -61,10 +61,10 @@ def test_evaluate_short_run_is_json_ready_and_good():
     assert o["median_px"] < 1.0 and o["tracked_fraction"] >= 0.95 and o["false_lock_fraction"] == 0.0
     assert o["fps"] > 0 and o["render_ms"] > 0  # speed goals: `targetlock bench vision`, not a timed test
     assert o["selection_failures"] == 0 and all(m["selection_failure"] is None for m in out["sequences"].values())
-    warned = [k for k, m in out["sequences"].items() if m["selection_warning"] is not None]
-    assert o["selection_warnings"] == len(warned)
-    if not warned:                       # then the unwarned share is the whole in-view share
-        assert o["tracked_in_view_unwarned"] == pytest.approx(o["tracked_in_view_fraction"])
+    # The mucosa's windows are textured: no selection warns, so the unwarned share is the whole in-view share.
+    assert o["selection_warnings"] == 0 and all(m["selection_warning"] is None for m in out["sequences"].values())
+    assert 0.95 <= o["tracked_in_view_fraction"] <= 1.0
+    assert o["tracked_in_view_unwarned"] == pytest.approx(o["tracked_in_view_fraction"])
     for m in out["sequences"].values():
         assert m["selected"] and 0.0 <= m["delta_avg"] <= 1.0
 

@@ -153,7 +153,7 @@ class AdaptiveController(Controller):
         prior = self._prior(motor, k.depth)
         # Bounds of J: from the farthest (25 % margin) to the nearest (50 % margin) distance the target
         # can be at (knowledge.nearest_depth .. farthest_depth; the one true distance for an oracle).
-        nearest, farthest = min(k.depth_range[0], k.depth), max(k.depth_range[1], k.depth)
+        nearest, farthest = k.depth_range
         near = self._prior(motor, nearest)
         floor = 0.75 * float(np.min(np.linalg.svd(self._prior(motor, farthest), compute_uv=False)))
         ceiling = 1.5 * float(np.max(np.linalg.svd(near, compute_uv=False)))

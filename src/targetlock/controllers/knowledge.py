@@ -72,10 +72,10 @@ class Knowledge:
     endoscope: EndoscopeParams
     camera: CameraParams          # intrinsics assumed; its ``latency`` is the assumed latency
     depth: float                  # m
+    depth_range: tuple[float, float]   # m, the nearest and farthest the target can be (contains depth)
     source: str                   # one of KNOWLEDGE_SOURCES
     preset: str                   # the endoscope preset these parameters came from
     endoscope_from: str = ""      # what overrode the preset's endoscope parameters, if anything (a file's name)
-    depth_range: tuple[float, float] = (0.01, 0.15)   # m, the nearest and farthest the target can be
 
     @property
     def latency(self) -> float:
@@ -113,8 +113,11 @@ def resolve_knowledge(k: KnowledgeConfig, plant: TwinConfig) -> Knowledge:
     camera = dataclasses.replace(CameraParams(), width=plant.camera.width, height=plant.camera.height,
                                  cx=plant.camera.cx, cy=plant.camera.cy, fps=plant.camera.fps, fx=fx, fy=fy,
                                  latency=plant.camera.latency if item == "latency" else k.latency)
-    # A controller that knows the depth knows the range it can be in: that one distance.
-    depth, depth_range = (truth, (truth, truth)) if item == "depth" else (k.depth, (k.nearest_depth, k.farthest_depth))
+    # A controller that knows the depth knows the range it can be in: that one distance. Otherwise the
+    # range holds the assumed depth (KnowledgeConfig.check refuses one outside it; an unvalidated config
+    # built in code widens the range instead).
+    depth, depth_range = ((truth, (truth, truth)) if item == "depth" else
+                          (k.depth, (min(k.nearest_depth, k.depth), max(k.farthest_depth, k.depth))))
     return Knowledge(endoscope=endoscope, camera=camera, depth=depth, depth_range=depth_range,
                      source=k.source, preset=plant.preset if item == "endoscope" else k.preset,
                      endoscope_from=Path(from_file).name if from_file else "")

@@ -279,7 +279,7 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
     m["fps_lost"] = n_lost / (dt - dt_lock) if n_lost and dt > dt_lock else float("nan")
     m["selected"] = bool(ok)
     m["selection_failure"] = tracker.failure
-    m["selection_warning"] = tracker.warning if ok else None
+    m["selection_warning"] = tracker.warning
     return m, results, dt, dt_lock, n_lock
 
 
