@@ -1,5 +1,7 @@
 """Vision in the closed loop and the vision commands."""
 import json
+import tempfile
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -80,6 +82,28 @@ def test_partial_frames_give_the_loop_exactly_what_whole_frames_give():
     assert part["vision"]["tracker_median_px"] == whole_hook.stats()["tracker_median_px"]
 
 
+def test_partial_frames_cover_a_window_the_selection_widened():
+    """A weak or one-way textured spot makes the tracker widen its window at selection (here 96 ->
+    192 px, a robustness case at 2.8 cm). The partial frames must follow the tracker's footprint,
+    not the window asked for: with the asked one every partial frame was rejected and the loop saw
+    the target on every other frame only (lost_fraction 0.5)."""
+    import dataclasses
+    from targetlock.experiments.robustness import case_config, draw_cases, write_waypoints
+    from targetlock.experiments.target_lock import run_target_lock
+    from targetlock.vision.pipeline import VisionPipeline
+
+    case = draw_cases(60, 0)[21]
+    write_waypoints(case, tmp := Path(tempfile.mkdtemp()) / "w.csv")
+    cfg = dataclasses.replace(case_config(case, "adaptive", tmp, 3.0, 0), vision=True)
+    part = run_target_lock(cfg)
+    whole_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed)
+    whole = run_target_lock(cfg, frame_hook=whole_hook)
+    assert whole_hook.tracker.selection["window_px"] > whole_hook.window_px   # the case still widens
+    assert part["vision"]["partial_frames"] > 0.75 * part["vision"]["frames"]
+    assert part["lost_fraction"] == whole["lost_fraction"] == 0.0
+    assert part["rms_px"] == whole["rms_px"]
+
+
 def test_loop_with_vision_on_deforming_folds(capsys, tmp_path):
     """The folds scene (lumen, breathing, peristalsis) in the loop: the tracker follows the moving
     surface point and the lock matches the ideal projection's."""
@@ -90,3 +114,4 @@ def test_loop_with_vision_on_deforming_folds(capsys, tmp_path):
     ideal = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["vision"]["tracker_median_px"] < 1.5 and s["lost_fraction"] == 0.0
     assert abs(s["rms_px"] - ideal["rms_px"]) < 0.15 * ideal["rms_px"] + 2.0
+

@@ -205,6 +205,12 @@ class TapTracker(Tracker):
     def fresh(self) -> "TapTracker":
         return TapTracker(self.inner.fresh(), self.window_px)
 
+    @property
+    def footprint_px(self) -> float | None:
+        with self._lock:
+            pending = self._request is not None
+        return None if pending else self.inner.footprint_px   # a selection reads about the click
+
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         """Select on a fresh tracker and keep it only if the selection succeeds: a click on a spot
         that cannot be tracked says why (``failure``) and the target tracked until then is kept."""

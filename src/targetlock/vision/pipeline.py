@@ -9,8 +9,8 @@ an MP4 with the tracked target, the image centre and the error drawn on it.
 
 With ``regions=True`` (for runs where nothing but the tracker reads the frames: no video, no
 ``on_frame``) a tracked frame is rendered only in a square around the last tracked position and
-where it is heading (:data:`REGION_MARGIN_PX` beyond the tracker's window); the first frame and
-every frame after a miss or loss are rendered whole (selection and re-acquisition search it all).
+where it is heading (the tracker's declared footprint plus :data:`REGION_MARGIN_PX`); the first
+frame and every frame after a miss or loss are rendered whole (selection and re-acquisition search it all).
 """
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ from .tracker import TrackerSettings, TrackResult, make_tracker, to_observation
 
 __all__ = ["VisionPipeline", "REGION_MARGIN_PX"]
 
-REGION_MARGIN_PX = 40
-"""Half side of a partly rendered frame's square beyond the tracker's window (px): the feature
-tracker reads its region (side 1.3 windows + 2 x 46 px) around its prediction and describes
-keyframes within a window + 32 px of the target."""
+REGION_MARGIN_PX = 8
+"""Margin (px) of a partly rendered frame's square beyond the tracker's declared footprint
+(:attr:`~targetlock.vision.tracker.Tracker.footprint_px`) about the last tracked position and where
+it is heading."""
 
 
 class VisionPipeline:
@@ -112,14 +112,23 @@ class VisionPipeline:
         return obs
 
     def _region(self) -> tuple[float, float, float, float] | None:
-        """Image square (x0, y0, x1, y1) the next frame needs, or None for the whole frame: around
-        the last tracked position and that plus twice the last frame's motion."""
+        """Image rectangle (x0, y0, x1, y1) the next frame needs, or None for the whole frame: the
+        tracker's footprint about the last tracked position and that plus twice the last frame's
+        motion, shifted inside the frame as the tracker shifts its crops (the window the tracker
+        settled on at selection may be larger than the one asked for)."""
         if not (self.regions and self._tracked and self._writer is None and self.on_frame is None):
+            return None
+        footprint = self.tracker.footprint_px
+        if footprint is None:
             return None
         p = self._tracked[-1]
         q = p + 2 * (p - self._tracked[0])        # (p itself after one tracked frame)
-        h = self.window_px + REGION_MARGIN_PX
-        return (min(p[0], q[0]) - h, min(p[1], q[1]) - h, max(p[0], q[0]) + h, max(p[1], q[1]) + h)
+        h = footprint + REGION_MARGIN_PX
+        lo, hi = np.minimum(p, q) - h, np.maximum(p, q) + h
+        size = np.array([self.cam.width, self.cam.height], float)
+        lo, hi = lo + np.maximum(0.0, -lo), hi + np.maximum(0.0, -lo)   # past the left/top: shifted right/down
+        lo, hi = lo - np.maximum(0.0, hi - size), np.minimum(hi, size)  # past the right/bottom: left/up
+        return (float(max(lo[0], 0.0)), float(max(lo[1], 0.0)), float(hi[0]), float(hi[1]))
 
     def stats(self) -> dict:
         e = np.asarray(self.errors)

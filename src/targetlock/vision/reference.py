@@ -57,6 +57,10 @@ class OpenCVTracker(Tracker):
     def fresh(self) -> "OpenCVTracker":
         return OpenCVTracker(self.name)
 
+    @property
+    def footprint_px(self) -> float | None:
+        return None  # OpenCV's trackers do not say what they read: always the whole frame
+
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         p = np.asarray(point_px, float).reshape(2)
         half = window_px / 2
@@ -88,6 +92,10 @@ class PlainLKTracker(Tracker):
 
     def fresh(self) -> "PlainLKTracker":
         return PlainLKTracker(self.min_points)
+
+    @property
+    def footprint_px(self) -> float | None:
+        return None  # the flow's pyramid is built on the whole frame
 
     def select(self, frame_bgr: np.ndarray, point_px, window_px: int) -> bool:
         gray = cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY)

@@ -132,6 +132,15 @@ class Tracker(abc.ABC):
         monotonic clock): when given, motion prediction and jump limits follow the real interval
         since the last frame (dropped frames); else frames are taken as evenly spaced."""
 
+    @property
+    @abc.abstractmethod
+    def footprint_px(self) -> float | None:
+        """Half side (px) of the square about the target's predicted place (its last position plus
+        its last motion) within which the next :meth:`update` reads the frame, while the target is
+        tracked and moves as predicted; None when it may read the whole frame (lost, not selected).
+        A caller that renders or copies only part of a frame (partial frames in the loop) must give
+        at least this, shifted inside the frame as the tracker's own crops are."""
+
 
 def field_of_view_mask(frame_bgr: np.ndarray, margin_px: int = 6, threshold: int = 12) -> np.ndarray:
     """uint8 mask (255 inside) of the endoscope's round field of view, shrunk by ``margin_px``.
@@ -1056,6 +1065,15 @@ class FeatureTracker(Tracker):
         return kf
 
     # -------------------------------------------------------------------- API
+    @property
+    def footprint_px(self) -> float | None:
+        # the flow's region (side ``_side`` about the prediction) and a new keyframe's description
+        # (the window + 32 px about the target, see _orb_source); the window is the selection's,
+        # which may have grown beyond the side asked for (weak or one-way texture)
+        if self.lost or self._anchor is None:
+            return None
+        return max(0.5 * self._side, self._window + 32.0)
+
     def fresh(self) -> "FeatureTracker":
         return FeatureTracker(self.settings)
 
@@ -2638,6 +2656,13 @@ class MarkerTracker(Tracker):
         h = cv2.getPerspectiveTransform(self._UNIT, self._undistorted(corners).astype(np.float32))
         p = cv2.perspectiveTransform(self._offset.reshape(1, 1, 2), h).reshape(2).astype(float)
         return self._distorted(p)
+
+    @property
+    def footprint_px(self) -> float | None:
+        # the marker search's region about the prediction (see update)
+        if self.lost or self._id is None:
+            return None
+        return self._size + self.settings.search_margin_px + float(np.hypot(*self._vel))
 
     def fresh(self) -> "MarkerTracker":
         return MarkerTracker(self.settings, self.camera)
