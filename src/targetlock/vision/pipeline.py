@@ -27,12 +27,29 @@ from .overlay import draw_overlay
 from .render import PlanarTarget, RenderSettings, Renderer, interpolate_pose
 from .tracker import TrackerSettings, TrackResult, make_tracker, to_observation
 
-__all__ = ["VisionPipeline", "REGION_MARGIN_PX"]
+__all__ = ["VisionPipeline", "REGION_MARGIN_PX", "TEXTURE_PX", "tissue_side_m"]
 
 REGION_MARGIN_PX = 8
 """Margin (px) of a partly rendered frame's square beyond the tracker's declared footprint
 (:attr:`~targetlock.vision.tracker.Tracker.footprint_px`) about the last tracked position and where
 it is heading."""
+
+
+TEXTURE_PX = 4096
+"""Side of the loop's tissue texture (texels)."""
+
+
+def tissue_side_m(twin: TwinConfig) -> float:
+    """Side (m) of the loop's square mucosa plane: 40 cm, so that the tip's whole working range sees
+    tissue rather than the plane's edge, but no more than :data:`TEXTURE_PX` texels per pixel
+    footprint at the target's distance (``twin.scene.distance / fx``), and at least 10 cm.
+
+    Tissue has detail at every scale, a texture only down to its texel: 4096 texels over 40 cm are
+    0.1 mm each, and a target at 1-3 cm (0.03-0.1 mm per pixel) was drawn as smooth blobs with a
+    third less image detail than at 3 cm, which the tracker lost where a real view would hold it
+    (docs/vision.md, "Vision in the closed loop"). A near scene is therefore the same mucosa at a finer
+    scale: the texture's physical scale follows the distance, its look in the image does not."""
+    return float(min(0.4, max(0.1, TEXTURE_PX * twin.scene.distance / twin.camera.fx)))
 
 
 class VisionPipeline:
@@ -46,10 +63,12 @@ class VisionPipeline:
                  on_frame: Callable[[float, np.ndarray, TrackResult], None] | None = None,
                  regions: bool = False, tracker_settings: TrackerSettings | None = None) -> None:
         self.cam = twin.camera
-        # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
-        size = (0.4, 0.4)
-        self.target = (PlanarTarget.aruco(seed=seed, size_m=size, marker_fraction=0.06, texture_px=4096)
-                       if tracker == "marker" else PlanarTarget.mucosa(size_m=size, seed=seed, texture_px=4096))
+        if tracker == "marker":
+            # A 40 cm plane: the tip's whole working range sees tissue, not the plane's edge.
+            self.target = PlanarTarget.aruco(seed=seed, size_m=(0.4, 0.4), marker_fraction=0.06, texture_px=TEXTURE_PX)
+        else:
+            side = tissue_side_m(twin)
+            self.target = PlanarTarget.mucosa(size_m=(side, side), seed=seed, texture_px=TEXTURE_PX)
         self.renderer = Renderer(self.cam, settings or RenderSettings(), self.target, seed=seed,
                                  surface=twin.scene.surface)
         self.tracker = make_tracker(tracker, tracker_settings if tracker == "feature" else None, camera=self.cam)
