@@ -227,6 +227,8 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
                                                             "worker processes (default: in this process)")
     p.add_argument("--controllers", metavar="LIST", help="robustness: comma-separated controllers to run (default: all); "
                                                          "kind[+source], e.g. adaptive,adaptive+oracle,adaptive+oracle-endoscope")
+    p.add_argument("--vision", action="store_true", help="robustness: every case through the rendered view and the "
+                                                         "feature tracker instead of the ideal projection (~3x slower)")
 
 
 @command("bench", "benchmarks: model, loop, vision, robustness, gym")(_bench_options)
@@ -245,7 +247,7 @@ def _bench(args: argparse.Namespace) -> int:
         from .experiments.robustness import BENCH_CONTROLLERS, bench_robustness, parse_controllers, parse_seeds
         controllers = parse_controllers(args.controllers) if args.controllers is not None else BENCH_CONTROLLERS
         res = bench_robustness(args.cases, parse_seeds(args.seed), workers=args.workers, controllers=controllers,
-                               out=args.out, overwrite=args.overwrite)
+                               out=args.out, overwrite=args.overwrite, vision=args.vision)
     elif args.what == "gym":
         from .bench import bench_gym
         res = bench_gym()

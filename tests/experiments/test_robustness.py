@@ -156,3 +156,27 @@ def test_the_command_takes_several_seeds_and_prints_each_sets_median_and_the_bre
     assert "median rms per set" in out and "1-3 cm" in out
     assert main(["bench", "robustness", "--seed", "1,1"]) == 2
     assert "named twice" in capsys.readouterr().err
+
+
+def test_the_benchmark_through_the_camera_tracks_the_rendered_target():
+    """--vision: the same cases, rendered and measured by the feature tracker; the lock stays close to
+    its ideal-tracker result and every frame's observation is counted (lost_fraction)."""
+    ideal = run_robustness(1, seed=0, controllers=("pi",), seconds=3.0)["per_case"]["pi"][0]
+    seen = run_robustness(1, seed=0, controllers=("pi",), seconds=3.0, vision=True)
+    row = seen["per_case"]["pi"][0]
+    assert seen["vision"] and not ideal.get("vision")
+    assert row["lost_fraction"] < 0.05 and ideal["lost_fraction"] < 0.15   # the ideal one drops frames on purpose
+    assert row["rms_px"] != ideal["rms_px"] and abs(row["rms_px"] - ideal["rms_px"]) < 0.2 * ideal["rms_px"] + 3.0
+    assert seen["summary"]["pi"]["lost_fraction_worst"] == row["lost_fraction"]
+
+
+def test_bench_robustness_records_the_camera_run_in_its_folder(tmp_path, capsys):
+    from targetlock.cli import main
+    from targetlock.config import load_toml
+    from targetlock.experiments.robustness import RobustnessSpec
+    out = tmp_path / "rb"
+    assert main(["bench", "robustness", "--cases", "1", "--controllers", "pi", "--vision", "--out", str(out)]) == 0
+    assert "through the rendered view" in capsys.readouterr().out
+    assert load_toml(RobustnessSpec, out / "config.toml").vision is True
+    header = (out / "cases.csv").read_text().splitlines()[0].split(",")
+    assert header[-1] == "lost_fraction"

@@ -21,7 +21,12 @@ true image error, where a sample with the target out of the image counts as the 
 diagonal (so losing the target is never rewarded), the fraction of time out of view, and the rms of
 the error over the last 3 s of the resting cases (``move`` and ``step``), and the target's motion in the
 image over those 3 s (rms about its mean position: a sustained oscillation at rest shows there, a
-steady offset does not). Ratios are to PI (I = 300) on the same case.
+steady offset does not), and the fraction of frames without a valid observation (``lost_fraction``:
+out of view, dropped, or missed by the tracker). Ratios are to PI (I = 300) on the same case.
+
+``vision=True`` (``--vision``) runs every case through the camera: the twin renders each frame and the
+feature tracker measures it (as ``targetlock run --vision``: the target selected where it is on the first
+frame) instead of the ideal projection with noise and drops: the whole chain a lab runs, about 3x slower.
 """
 from __future__ import annotations
 
@@ -167,17 +172,19 @@ def write_waypoints(case: Case, path: Path) -> None:
         w.writerows(case.waypoints.tolist())
 
 
-def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int) -> RunConfig:
+def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int,
+                vision: bool = False) -> RunConfig:
     """The run of ``controller`` on ``case``: a controller kind, with ``+source`` a knowledge source
     (:data:`~targetlock.controllers.knowledge.KNOWLEDGE_SOURCES`, e.g. ``adaptive+oracle`` for the
-    plant's truth, ``adaptive+oracle-endoscope`` for its endoscope only)."""
+    plant's truth, ``adaptive+oracle-endoscope`` for its endoscope only). ``vision``: rendered frames
+    and the feature tracker instead of the ideal projection (its noise and drops are then the tracker's)."""
     kind, _, source = controller.partition("+")
     twin = twin_config(case.preset, {"endoscope": case.endoscope, "drive": case.drive, "camera": case.camera,
                                      "scene": {"path": "waypoints", "waypoints_file": str(waypoints_file),
                                                "distance": case.distance, "start_tip_deg": case.start_tip_deg}})
     return RunConfig(twin=twin, controller=ControllerConfig(kind=kind),
                      knowledge=KnowledgeConfig(source=source or "nominal"),
-                     loop=LoopConfig(seconds=seconds, metrics_after=1.0),
+                     loop=LoopConfig(seconds=seconds, metrics_after=1.0), vision=vision,
                      tracker=ObservationNoise(noise_px=case.noise_px, drop_probability=case.drop_probability,
                                               seed=seed + case.index),
                      seed=seed + case.index)
@@ -204,10 +211,11 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
 def score_run(cfg: RunConfig) -> dict:
     """Run one case's config and score it (:func:`score`); a task of its own on a Dask worker."""
     s = run_target_lock(cfg)
-    return score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after)
+    return {**score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after),
+            "lost_fraction": float(s["lost_fraction"])}
 
 
-SCORES = ("rms_px", "peak_px", "out_of_view", "rest_rms_px", "rest_motion_px")   # of :func:`score`
+SCORES = ("rms_px", "peak_px", "out_of_view", "rest_rms_px", "rest_motion_px", "lost_fraction")   # of :func:`score_run`
 CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", "latency_s", "fps", *SCORES]
 """Columns of a per-case row (:func:`run_robustness`'s ``on_result``, ``bench robustness --out``'s ``cases.csv``)."""
 
@@ -219,7 +227,8 @@ def _as_seeds(seed: int | Sequence[int]) -> tuple[int, ...]:
 
 def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers: tuple[str, ...] = BENCH_CONTROLLERS,
                    seconds: float = 12.0, progress: bool = False, workers: int | None = None,
-                   cases_folder: Path | None = None, on_result: Callable[[dict], None] | None = None) -> dict:
+                   cases_folder: Path | None = None, on_result: Callable[[dict], None] | None = None,
+                   vision: bool = False) -> dict:
     """Run every controller on every case of one random set (``seed``) or several (a sequence of
     seeds, ``n_cases`` each); returns per-case scores and the per-controller summary over all cases
     (:func:`summarise`), with ``sets`` (the summary of each set, by seed) and ``breakdown``
@@ -230,7 +239,8 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
     ``cases_folder``: keep each case's waypoints there (``seed-S-case-NNN.csv``, else in a temporary
     folder) with its run config for PI (``seed-S-case-NNN.toml``: ``targetlock run --config`` runs the
     case again, ``--controller`` / ``--set knowledge.source=...`` with another controller). ``on_result(row)``
-    is called as each run finishes, with a row of :data:`CASE_COLUMNS`."""
+    is called as each run finishes, with a row of :data:`CASE_COLUMNS`. ``vision``: every run through the
+    rendered view and the feature tracker (:func:`case_config`)."""
     seeds = _as_seeds(seed)
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"run_robustness: seeds {list(seeds)}; allowed: one or more, each once")
@@ -247,8 +257,8 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
                 path = folder / f"seed-{s}-case-{case.index:03d}.csv"
                 write_waypoints(case, path)
                 if cases_folder is not None:   # kept: a row of the results can be run again
-                    save_toml(case_config(case, "pi", path.resolve(), seconds, s), path.with_suffix(".toml"))
-                jobs += [(s, case, c, case_config(case, c, path, seconds, s)) for c in controllers]
+                    save_toml(case_config(case, "pi", path.resolve(), seconds, s, vision), path.with_suffix(".toml"))
+                jobs += [(s, case, c, case_config(case, c, path, seconds, s, vision)) for c in controllers]
         scores: list[dict] = [{} for _ in jobs]     # filled in as the runs finish (any order on Dask)
 
         def done(k: int, sc: dict) -> None:
@@ -282,7 +292,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
                 row = scores[k - len(controllers) + 1:k + 1]
                 print(f"seed {s} " + case.describe() + ": " +
                       ", ".join(f"{name} {r['rms_px']:.0f}" for name, r in zip(controllers, row)), flush=True)
-    out = {"seed": seeds[0] if len(seeds) == 1 else list(seeds), "cases": n_cases, "seconds": seconds,
+    out = {"seed": seeds[0] if len(seeds) == 1 else list(seeds), "cases": n_cases, "seconds": seconds, "vision": vision,
            "wall_seconds": time.perf_counter() - t0, "workers": workers or 0, "per_case": per, "summary": summarise(per)}
     if len(seeds) > 1:
         out["sets"] = {s: summarise({c: [r for r in rows if r["seed"] == s] for c, rows in per.items()}) for s in seeds}
@@ -314,7 +324,9 @@ def summarise(per: dict[str, list[dict]]) -> dict:
                   "in_view_near_median": float(np.median(in_view_near)) if in_view_near.size else math.nan,
                   "rest_rms_worst": float(rest.max()) if rest.size else math.nan,
                   "rest_motion_median": float(np.median(motion)) if motion.size else math.nan,
-                  "rest_motion_worst": float(motion.max()) if motion.size else math.nan}
+                  "rest_motion_worst": float(motion.max()) if motion.size else math.nan,
+                  "lost_fraction_median": float(np.median([r["lost_fraction"] for r in rows])),
+                  "lost_fraction_worst": float(max(r["lost_fraction"] for r in rows))}
     return out
 
 
@@ -365,13 +377,15 @@ def format_breakdown(by: dict) -> list[str]:
 def format_table(summary: dict) -> list[str]:
     w = max([18] + [len(c) for c in summary])
     lines = [f"{'controller':<{w}} {'rms med':>7} {'xPI med':>7} {'p95':>6} {'worst':>6} | {'peak med':>8} {'p95':>6} {'worst':>6} | "
-             f"{'left img':>8} {'PI kept':>7} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21}"]
+             f"{'left img':>8} {'PI kept':>7} {'vs PI med':>9} {'worst':>6} {'>1.1xPI':>7} | {'1-2cm in view':>13} {'rest rms':>8} {'rest motion med/worst':>21} | "
+             f"{'unseen med/worst':>16}"]
     for c, s in summary.items():
         lines.append(f"{c:<{w}} {s['rms_median']:>7.1f} {s['median_ratio_of_medians']:>7.2f} {s['rms_p95']:>6.0f} {s['rms_worst']:>6.0f} | "
                      f"{s['peak_median']:>8.0f} {s['peak_p95']:>6.0f} {s['peak_worst']:>6.0f} | "
                      f"{100 * s['left_image_fraction']:>7.0f}% {s['left_where_pi_kept']:>7d} {s['ratio_to_pi_median']:>9.2f} {s['ratio_to_pi_worst']:>6.2f} "
                      f"{s['cases_worse_than_pi_by_10pct']:>7d} | {100 * s['in_view_near_median']:>12.0f}% "
-                     f"{s['rest_rms_worst']:>8.1f} {s['rest_motion_median']:>10.1f} / {s['rest_motion_worst']:>8.1f}")
+                     f"{s['rest_rms_worst']:>8.1f} {s['rest_motion_median']:>10.1f} / {s['rest_motion_worst']:>8.1f} | "
+                     f"{100 * s['lost_fraction_median']:>6.0f}% / {100 * s['lost_fraction_worst']:>6.0f}%")
     return lines
 
 
@@ -397,6 +411,7 @@ class RobustnessSpec:
     controllers: tuple[str, ...] = param(BENCH_CONTROLLERS, doc="controllers, kind[+knowledge source]; pi always runs")
     seconds: float = param(12.0, unit="s", lo=1.0, hi=3600.0, doc="length of each run")
     workers: int = param(0, lo=0, hi=512, doc="local Dask worker processes (0: in this process)")
+    vision: bool = param(False, doc="rendered frames and the feature tracker instead of the ideal projection")
 
 
 def check_seeds(seeds: tuple[int, ...], text: str | None = None) -> tuple[int, ...]:
@@ -423,14 +438,14 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 
 def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: int | None = None,
                      controllers: tuple[str, ...] = BENCH_CONTROLLERS, out: str | Path | None = None,
-                     overwrite: bool = False) -> dict:
+                     overwrite: bool = False, vision: bool = False) -> dict:
     """``targetlock bench robustness``: print the table; returns the summary (the JSON line).
 
     Several seeds run several random sets in one go (one Dask cluster): the table is pooled over all
     cases, with each set's median and their mean, and a breakdown by distance and motion. ``out``: a run
     folder with ``config.toml``, ``cases.csv`` (one row per run, :data:`CASE_COLUMNS`, appended as
     runs finish, so a killed benchmark keeps them), each case's waypoints (``cases/``) and
-    ``summary.json``."""
+    ``summary.json``. ``vision``: through the rendered view and the feature tracker (:func:`case_config`)."""
     from ..config import ConfigError
     from .runfolder import RunFolder
     seeds = check_seeds(_as_seeds(seed))
@@ -439,17 +454,18 @@ def bench_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, workers: 
     if workers is not None and not 1 <= workers <= 512:
         raise ConfigError(f"--workers = {workers}; allowed: [1, 512]")
     if out is None:
-        return _bench(n_cases, seeds, workers, controllers, None)
-    spec = RobustnessSpec(cases=n_cases, seeds=seeds, controllers=tuple(controllers), workers=workers or 0)
+        return _bench(n_cases, seeds, workers, controllers, None, vision)
+    spec = RobustnessSpec(cases=n_cases, seeds=seeds, controllers=tuple(controllers), workers=workers or 0,
+                          vision=vision)
     with RunFolder("robustness", spec, out, overwrite=overwrite) as folder:
-        return _bench(n_cases, seeds, workers, controllers, folder)
+        return _bench(n_cases, seeds, workers, controllers, folder, vision)
 
 
 def _bench(n_cases: int, seeds: tuple[int, ...], workers: int | None, controllers: tuple[str, ...],
-           folder: RunFolder | None) -> dict:
+           folder: RunFolder | None, vision: bool) -> dict:
     """:func:`bench_robustness` after its checks, into the run folder ``folder`` (or none)."""
     if folder is None:
-        r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers)
+        r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers, vision=vision)
     else:
         (folder.path / "cases").mkdir()
         with folder.file("cases.csv").open("w", newline="") as fh:
@@ -460,12 +476,14 @@ def _bench(n_cases: int, seeds: tuple[int, ...], workers: int | None, controller
                 table.writerow(row)
                 fh.flush()
             r = run_robustness(n_cases, seeds, controllers=controllers, workers=workers,
-                               cases_folder=folder.path / "cases", on_result=on_result)
+                               cases_folder=folder.path / "cases", on_result=on_result, vision=vision)
     print(f"robustness: {n_cases} random cases per set (seed {', '.join(map(str, seeds))}), {r['seconds']:g} s each, "
-          f"nominal knowledge unless '+oracle' (+oracle-<item>: that item's truth only); rms/peak in px (out of view "
-          f"= image half diagonal), ratios to PI (I = 300)")
+          f"nominal knowledge unless '+oracle' (+oracle-<item>: that item's truth only); "
+          + ("through the rendered view and the feature tracker; " if vision else "")
+          + "rms/peak in px (out of view = image half diagonal), ratios to PI (I = 300)")
     print("\n".join(format_table(r["summary"])))
-    result = {"seed": r["seed"], "cases": n_cases, "seconds_per_case": r["seconds"], "wall_seconds": r["wall_seconds"],
+    result = {"seed": r["seed"], "cases": n_cases, "seconds_per_case": r["seconds"], "vision": vision,
+              "wall_seconds": r["wall_seconds"],
               "controllers": r["summary"]}
     if len(seeds) > 1:
         sets = r["sets"]
