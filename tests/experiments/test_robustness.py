@@ -168,6 +168,7 @@ def test_the_benchmark_through_the_camera_tracks_the_rendered_target():
     assert row["lost_fraction"] < 0.05 and ideal["lost_fraction"] < 0.15   # the ideal one drops frames on purpose
     assert row["rms_px"] != ideal["rms_px"] and abs(row["rms_px"] - ideal["rms_px"]) < 0.2 * ideal["rms_px"] + 3.0
     assert seen["summary"]["pi"]["lost_fraction_worst"] == row["lost_fraction"]
+    assert row["tracker_median_px"] < 1.5 and math.isnan(ideal["tracker_median_px"])
 
 
 def test_bench_robustness_records_the_camera_run_in_its_folder(tmp_path, capsys):
@@ -179,4 +180,4 @@ def test_bench_robustness_records_the_camera_run_in_its_folder(tmp_path, capsys)
     assert "through the rendered view" in capsys.readouterr().out
     assert load_toml(RobustnessSpec, out / "config.toml").vision is True
     header = (out / "cases.csv").read_text().splitlines()[0].split(",")
-    assert header[-1] == "lost_fraction"
+    assert header[-3:] == ["lost_fraction", "tracker_median_px", "tracker_p95_px"]

@@ -22,7 +22,9 @@ diagonal (so losing the target is never rewarded), the fraction of time out of v
 the error over the last 3 s of the resting cases (``move`` and ``step``), and the target's motion in the
 image over those 3 s (rms about its mean position: a sustained oscillation at rest shows there, a
 steady offset does not), and the fraction of frames without a valid observation (``lost_fraction``:
-out of view, dropped, or missed by the tracker). Ratios are to PI (I = 300) on the same case.
+out of view, dropped, or missed by the tracker), and with ``vision`` the tracker's own error
+(median and p95 over the frames it reported with the target in view: a wrong lock shows there, a lost
+target in ``lost_fraction``). Ratios are to PI (I = 300) on the same case.
 
 ``vision=True`` (``--vision``) runs every case through the camera: the twin renders each frame and the
 feature tracker measures it (as ``targetlock run --vision``: the target selected where it is on the first
@@ -211,11 +213,15 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
 def score_run(cfg: RunConfig) -> dict:
     """Run one case's config and score it (:func:`score`); a task of its own on a Dask worker."""
     s = run_target_lock(cfg)
+    seen = s.get("vision", {})
     return {**score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after),
-            "lost_fraction": float(s["lost_fraction"])}
+            "lost_fraction": float(s["lost_fraction"]),
+            "tracker_median_px": float(seen.get("tracker_median_px", math.nan)),
+            "tracker_p95_px": float(seen.get("tracker_p95_px", math.nan))}
 
 
-SCORES = ("rms_px", "peak_px", "out_of_view", "rest_rms_px", "rest_motion_px", "lost_fraction")   # of :func:`score_run`
+SCORES = ("rms_px", "peak_px", "out_of_view", "rest_rms_px", "rest_motion_px", "lost_fraction",
+          "tracker_median_px", "tracker_p95_px")   # of :func:`score_run`; the tracker's error only with vision
 CASE_COLUMNS = ["seed", "case", "controller", "motion", "preset", "distance_m", "latency_s", "fps", *SCORES]
 """Columns of a per-case row (:func:`run_robustness`'s ``on_result``, ``bench robustness --out``'s ``cases.csv``)."""
 
