@@ -87,3 +87,14 @@ def test_folds_surface_moves_the_target_along_the_normal_with_breathing_and_peri
     wr, dw = SurfaceParams(kind="folds").profile(r, 1.7)
     np.testing.assert_allclose(np.gradient(wr, r)[1:-1], dw[1:-1], atol=2e-3)
     assert not SurfaceParams(kind="folds", amplitude=0.0).height(0.01, 0.0, 1.0)   # amplitude 0: the plane
+
+
+def test_a_tilted_tissue_turns_the_plane_but_not_the_target_point():
+    flat, tilted = scene(path="ellipse"), scene(path="ellipse", tissue_tilt_deg=(30.0, 0.0))
+    t = np.linspace(0.0, 30.0, 7)
+    np.testing.assert_allclose(tilted.target_position(t), flat.target_position(t), atol=1e-12)
+    np.testing.assert_allclose(tilted.target_pose(5.0)[:3, 3], flat.target_pose(5.0)[:3, 3], atol=1e-12)
+    normal_flat, normal = flat.target_pose(0.0)[:3, 2], tilted.target_pose(0.0)[:3, 2]
+    assert math.degrees(math.acos(float(normal_flat @ normal))) == pytest.approx(30.0, abs=1e-9)
+    axis = START[:3, 0]                                # tilted about the start image's x axis
+    assert float(axis @ normal) == pytest.approx(0.0, abs=1e-12)

@@ -358,3 +358,20 @@ def test_relief_slope_scale_is_the_whole_image_sobel_rms(shape):
     height = np.random.default_rng(shape[0]).integers(0, 256, shape, dtype=np.uint8)
     for view in (height, height[:, ::2]):
         assert render_module._gradient_rms(view, rows=100) == pytest.approx(_sobel_rms(view), rel=1e-6)
+
+
+def test_a_tilted_tissue_moves_the_glints_off_the_centre(cam, mucosa_target):
+    """With the light at the tip, a surface seen face-on mirrors it at the image centre, where the lock
+    holds the target; tilted by a, the mirror point is where the plane's normal meets the camera:
+    f * tan(a) from the centre (173 px at 30 degrees, f = 300 px)."""
+    from targetlock.model.scene import Scene, SceneParams
+    renderer = Renderer(cam, RenderSettings(), mucosa_target)
+
+    def glints_from_centre(tilt: tuple[float, float]) -> float:
+        pose = Scene(SceneParams(distance=0.035, tissue_tilt_deg=tilt), cam, np.eye(4)).target_pose(0.0)
+        ys, xs = np.nonzero(renderer.render(np.eye(4), pose).image.min(axis=2) > 230)
+        assert xs.size > 50
+        return float(np.hypot(np.median(xs) - cam.cx, np.median(ys) - cam.cy))
+
+    assert glints_from_centre((0.0, 0.0)) < 40.0
+    assert glints_from_centre((30.0, 0.0)) == pytest.approx(cam.fy * math.tan(math.radians(30.0)), abs=45.0)

@@ -29,6 +29,9 @@ target in ``lost_fraction``). Ratios are to PI (I = 300) on the same case.
 ``vision=True`` (``--vision``) runs every case through the camera: the twin renders each frame and the
 feature tracker measures it (as ``targetlock run --vision``: the target selected where it is on the first
 frame) instead of the ideal projection with noise and drops: the whole chain a lab runs, about 3x slower.
+Each case's tissue is then seen 0-40 degrees from face-on (``scene.tissue_tilt_deg``, drawn apart from
+the case's other draws; the ideal projection does not depend on it): a face-on plane mirrors the tip's
+light at the image centre, right where the lock holds the target.
 """
 from __future__ import annotations
 
@@ -78,6 +81,7 @@ class Case:
     noise_px: float
     drop_probability: float
     waypoints: np.ndarray  # (n, 4): t, x, y, z offsets in the start camera frame (m)
+    tissue_tilt_deg: tuple[float, float] = (0.0, 0.0)   # the rendered tissue's tilt (only seen with vision)
 
     def describe(self) -> str:
         return (f"case {self.index}: {self.motion}, preset {self.preset}, {100 * self.distance:.1f} cm, "
@@ -160,9 +164,14 @@ def draw_cases(n: int, seed: int, seconds: float = 12.0) -> list[Case]:
         start = (u(-35.0, 35.0), u(-25.0, 25.0))
         motion = MOTIONS[i % len(MOTIONS)]
         wp = _motion(motion, rng, d, seconds, start, f_px)
+        # The tissue seen at 0-40 degrees from face-on, in any direction: drawn apart from the rest so
+        # that adding it left every other draw of a seed as it was.
+        tilt_rng = np.random.default_rng([seed, i, 1])
+        tilt, about = math.radians(tilt_rng.uniform(0.0, 40.0)), tilt_rng.uniform(0.0, 2.0 * math.pi)
+        tilt_deg = (math.degrees(tilt * math.cos(about)), math.degrees(tilt * math.sin(about)))
         cases.append(Case(index=i, preset=preset, endoscope=endo, drive=drive, camera=camera, distance=d,
                           start_tip_deg=start, motion=motion, noise_px=u(0.0, 1.5), drop_probability=u(0.0, 0.08),
-                          waypoints=wp))
+                          waypoints=wp, tissue_tilt_deg=tilt_deg))
     return cases
 
 
@@ -183,7 +192,8 @@ def case_config(case: Case, controller: str, waypoints_file: Path, seconds: floa
     kind, _, source = controller.partition("+")
     twin = twin_config(case.preset, {"endoscope": case.endoscope, "drive": case.drive, "camera": case.camera,
                                      "scene": {"path": "waypoints", "waypoints_file": str(waypoints_file),
-                                               "distance": case.distance, "start_tip_deg": case.start_tip_deg}})
+                                               "distance": case.distance, "start_tip_deg": case.start_tip_deg,
+                                               "tissue_tilt_deg": case.tissue_tilt_deg}})
     return RunConfig(twin=twin, controller=ControllerConfig(kind=kind),
                      knowledge=KnowledgeConfig(source=source or "nominal"),
                      loop=LoopConfig(seconds=seconds, metrics_after=1.0), vision=vision,

@@ -113,6 +113,11 @@ class SceneParams:
     ellipse_frequency: float = param(0.05, unit="Hz", lo=0.001, hi=10.0, doc="revolutions per second (report: 0.05 Hz)")
     step_offset_px: tuple[float, float] = param((-180.0, 0.0), unit="px", lo=-4096.0, hi=4096.0,
                                                 doc="where the step target appears, from the image centre")
+    tissue_tilt_deg: tuple[float, float] = param((0.0, 0.0), unit="deg", lo=-75.0, hi=75.0,
+                                                 doc="tilt of the tissue plane from facing the start camera, about the "
+                                                     "start image's x axis, then its y axis (0, 0: face-on); the "
+                                                     "target point and its path do not change, only what is rendered "
+                                                     "around it (its light, glints and perspective)")
     surface: SurfaceParams = field(default_factory=SurfaceParams)
 
     def check(self, prefix: str = "") -> None:
@@ -173,6 +178,10 @@ class Scene:
         self.start_pose = np.array(start_camera_pose, dtype=float)
         self.rotation = self.start_pose[:3, :3]
         self.anchor = self.start_pose[:3, 3] + params.distance * self.rotation[:, 2]
+        ax, ay = (math.radians(a) for a in params.tissue_tilt_deg)
+        rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(ax), -math.sin(ax)], [0.0, math.sin(ax), math.cos(ax)]])
+        ry = np.array([[math.cos(ay), 0.0, math.sin(ay)], [0.0, 1.0, 0.0], [-math.sin(ay), 0.0, math.cos(ay)]])
+        self.plane_rotation = self.rotation @ rx @ ry   # the tissue plane's axes (its z: the normal, away from the camera)
         self._waypoints = _load_waypoints(params.waypoints_file) if params.path == "waypoints" else None
         if params.path == "step":
             self._step = unproject(np.array(params.step_offset_px) + [camera.cx, camera.cy], params.distance,
@@ -228,12 +237,12 @@ class Scene:
         if surf.flat:
             return pos
         w = np.vectorize(lambda tt: float(surf.height(0.0, 0.0, tt)))(t)
-        return pos + np.multiply.outer(w, self.rotation[:, 2])
+        return pos + np.multiply.outer(w, self.plane_rotation[:, 2])
 
     def target_pose(self, t: float) -> np.ndarray:
         """4x4 pose of the target plane: origin at the selected point (of the undeformed plane when
-        the surface is not flat), facing the start camera."""
+        the surface is not flat), facing the start camera, tilted by ``tissue_tilt_deg``."""
         pose = np.eye(4)
-        pose[:3, :3] = self.rotation
+        pose[:3, :3] = self.plane_rotation
         pose[:3, 3] = self.anchor + self.offset(t) @ self.rotation.T
         return pose
