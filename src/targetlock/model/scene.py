@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..config import ConfigError, param, read_text_file
 from ..errors import InputFileError
@@ -178,10 +179,10 @@ class Scene:
         self.start_pose = np.array(start_camera_pose, dtype=float)
         self.rotation = self.start_pose[:3, :3]
         self.anchor = self.start_pose[:3, 3] + params.distance * self.rotation[:, 2]
-        ax, ay = (math.radians(a) for a in params.tissue_tilt_deg)
-        rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(ax), -math.sin(ax)], [0.0, math.sin(ax), math.cos(ax)]])
-        ry = np.array([[math.cos(ay), 0.0, math.sin(ay)], [0.0, 1.0, 0.0], [-math.sin(ay), 0.0, math.cos(ay)]])
-        self.plane_rotation = self.rotation @ rx @ ry   # the tissue plane's axes (its z: the normal, away from the camera)
+        # the tissue plane's axes (its z: the normal, away from the camera): turned about the start
+        # image's x axis, then about the turned y axis
+        tilt = Rotation.from_euler("XY", params.tissue_tilt_deg, degrees=True).as_matrix()
+        self.plane_rotation = self.rotation @ tilt
         self._waypoints = _load_waypoints(params.waypoints_file) if params.path == "waypoints" else None
         if params.path == "step":
             self._step = unproject(np.array(params.step_offset_px) + [camera.cx, camera.cy], params.distance,
