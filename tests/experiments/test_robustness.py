@@ -161,10 +161,10 @@ def test_the_command_takes_several_seeds_and_prints_each_sets_median_and_the_bre
 def test_the_benchmark_through_the_camera_tracks_the_rendered_target():
     """--vision: the same cases, rendered and measured by the feature tracker; the lock stays close to
     its ideal-tracker result and every frame's observation is counted (lost_fraction)."""
-    ideal = run_robustness(1, seed=0, controllers=("pi",), seconds=3.0)["per_case"]["pi"][0]
+    plain = run_robustness(1, seed=0, controllers=("pi",), seconds=3.0)
     seen = run_robustness(1, seed=0, controllers=("pi",), seconds=3.0, vision=True)
-    row = seen["per_case"]["pi"][0]
-    assert seen["vision"] and not ideal.get("vision")
+    ideal, row = plain["per_case"]["pi"][0], seen["per_case"]["pi"][0]
+    assert seen["vision"] and not plain["vision"]
     assert row["lost_fraction"] < 0.05 and ideal["lost_fraction"] < 0.15   # the ideal one drops frames on purpose
     assert row["rms_px"] != ideal["rms_px"] and abs(row["rms_px"] - ideal["rms_px"]) < 0.2 * ideal["rms_px"] + 3.0
     assert seen["summary"]["pi"]["lost_fraction_worst"] == row["lost_fraction"]

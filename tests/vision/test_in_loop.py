@@ -87,14 +87,13 @@ def test_partial_frames_cover_a_window_the_selection_widened():
     192 px, a robustness case at 2.8 cm). The partial frames must follow the tracker's footprint,
     not the window asked for: with the asked one every partial frame was rejected and the loop saw
     the target on every other frame only (lost_fraction 0.5)."""
-    import dataclasses
     from targetlock.experiments.robustness import case_config, draw_cases, write_waypoints
     from targetlock.experiments.target_lock import run_target_lock
     from targetlock.vision.pipeline import VisionPipeline
 
     case = draw_cases(60, 0)[21]
     write_waypoints(case, tmp := Path(tempfile.mkdtemp()) / "w.csv")
-    cfg = dataclasses.replace(case_config(case, "adaptive", tmp, 3.0, 0), vision=True)
+    cfg = case_config(case, "adaptive", tmp, 3.0, 0, vision=True)
     part = run_target_lock(cfg)
     whole_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed)
     whole = run_target_lock(cfg, frame_hook=whole_hook)
@@ -121,14 +120,14 @@ def test_a_near_target_is_drawn_with_as_much_detail_as_a_far_one():
     distance): the band-passed contrast around a target at 1.2 cm is within 15 % of that at 3 cm,
     where the 40 cm plane drew it a quarter smoother."""
     from targetlock.model.twin import twin_config
-    from targetlock.vision.pipeline import VisionPipeline, tissue_side_m
+    from targetlock.vision.pipeline import TEXTURE_PX, VisionPipeline, tissue_side_m
+    from targetlock.vision.render import PlanarTarget
 
     def detail(d: float, side: float | None = None) -> float:
         twin = twin_config("calibrated", {"scene": {"distance": d}})
         pipe = VisionPipeline(twin, seed=2)
         if side is not None:
-            from targetlock.vision.render import PlanarTarget
-            pipe.renderer.set_target(PlanarTarget.mucosa(size_m=(side, side), seed=2, texture_px=4096))
+            pipe.renderer.set_target(PlanarTarget.mucosa(size_m=(side, side), seed=2, texture_px=TEXTURE_PX))
         pose = np.eye(4)
         pose[2, 3] = d
         g = cv2.cvtColor(pipe.renderer.render(np.eye(4), pose).image, cv2.COLOR_BGR2GRAY)

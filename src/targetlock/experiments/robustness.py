@@ -221,7 +221,8 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
 
 
 def score_run(cfg: RunConfig) -> dict:
-    """Run one case's config and score it (:func:`score`); a task of its own on a Dask worker."""
+    """Run one case's config and score it (:func:`score`, with the run's ``lost_fraction`` and, through
+    the camera, the tracker's own error: :data:`SCORES`); a task of its own on a Dask worker."""
     s = run_target_lock(cfg)
     seen = s.get("vision", {})
     return {**score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after),
