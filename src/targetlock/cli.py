@@ -226,7 +226,9 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="robustness: run the cases on a local Dask cluster of N "
                                                             "worker processes (default: in this process)")
     p.add_argument("--controllers", metavar="LIST", help="robustness: comma-separated controllers to run (default: all); "
-                                                         "kind[+source], e.g. adaptive,adaptive+oracle,adaptive+oracle-endoscope")
+                                                         "kind[+source][@N], e.g. adaptive,adaptive+oracle,adaptive+oracle-endoscope; "
+                                                         "@N scores the N-th engagement of the same controller on each "
+                                                         "case (adaptive@2: engaged again, it keeps the scope it found)")
     p.add_argument("--vision", action="store_true", help="robustness: every case through the rendered view and the "
                                                          "feature tracker instead of the ideal projection (~3x slower)")
 

@@ -26,6 +26,11 @@ out of view, dropped, or missed by the tracker), and with ``vision`` the tracker
 (median and p95 over the frames it reported with the target in view: a wrong lock shows there, a lost
 target in ``lost_fraction``). Ratios are to PI (I = 300) on the same case.
 
+A controller name ending in ``@N`` (``adaptive@2``) scores its N-th engagement on each case: the case
+run N times engaging one and the same controller, each on a fresh twin, as a lock is engaged again and
+again on one scope in a procedure (what ``adaptive`` keeps across engagements: the candidate scope and
+the video delay it found; :func:`~targetlock.experiments.target_lock.run_engagements`).
+
 ``vision=True`` (``--vision``) runs every case through the camera: the twin renders each frame and the
 feature tracker measures it (as ``targetlock run --vision``: the target selected where it is on the first
 frame) instead of the ideal projection with noise and drops: the whole chain a lab runs, about 3x slower.
@@ -52,12 +57,12 @@ from ..loop.runner import LoopConfig
 from ..model.kinematics import tip_pose
 from ..model.twin import PRESETS, twin_config
 from ..rig.simulated import ObservationNoise
-from .target_lock import RunConfig, run_target_lock
+from .target_lock import RunConfig, run_engagements, run_target_lock
 
 if TYPE_CHECKING:
     from .runfolder import RunFolder
 
-__all__ = ["MOTIONS", "Case", "draw_cases", "case_config", "write_waypoints", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
+__all__ = ["MOTIONS", "Case", "draw_cases", "split_name", "case_config", "write_waypoints", "score", "run_robustness", "summarise", "BENCH_CONTROLLERS",
            "CASE_COLUMNS", "DISTANCE_BANDS", "breakdown", "format_table", "format_breakdown", "RobustnessSpec", "check_seeds", "parse_seeds",
            "bench_robustness"]
 
@@ -183,13 +188,22 @@ def write_waypoints(case: Case, path: Path) -> None:
         w.writerows(case.waypoints.tolist())
 
 
+def split_name(controller: str) -> tuple[str, str, int]:
+    """A benchmark controller name ``kind[+source][@N]`` as (kind, knowledge source or "", engagement N,
+    1 when not given)."""
+    name, at, n = controller.partition("@")
+    kind, _, source = name.partition("+")
+    return kind, source, int(n) if at and n.isdigit() else (1 if not at else 0)
+
+
 def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int,
                 vision: bool = False) -> RunConfig:
     """The run of ``controller`` on ``case``: a controller kind, with ``+source`` a knowledge source
     (:data:`~targetlock.controllers.knowledge.KNOWLEDGE_SOURCES`, e.g. ``adaptive+oracle`` for the
-    plant's truth, ``adaptive+oracle-endoscope`` for its endoscope only). ``vision``: rendered frames
-    and the feature tracker instead of the ideal projection (its noise and drops are then the tracker's)."""
-    kind, _, source = controller.partition("+")
+    plant's truth, ``adaptive+oracle-endoscope`` for its endoscope only); an ``@N`` suffix (the engagement
+    scored, :func:`score_run`) does not change the run's config. ``vision``: rendered frames and the feature
+    tracker instead of the ideal projection (its noise and drops are then the tracker's)."""
+    kind, source, _ = split_name(controller)
     twin = twin_config(case.preset, {"endoscope": case.endoscope, "drive": case.drive, "camera": case.camera,
                                      "scene": {"path": "waypoints", "waypoints_file": str(waypoints_file),
                                                "distance": case.distance, "start_tip_deg": case.start_tip_deg,
@@ -220,10 +234,13 @@ def score(data: np.ndarray, width: int, height: int, after: float, rest_window: 
             "rest_motion_px": motion}
 
 
-def score_run(cfg: RunConfig) -> dict:
+def score_run(cfg: RunConfig, engagement: int = 1) -> dict:
     """Run one case's config and score it (:func:`score`, with the run's ``lost_fraction`` and, through
-    the camera, the tracker's own error: :data:`SCORES`); a task of its own on a Dask worker."""
-    s = run_target_lock(cfg)
+    the camera, the tracker's own error: :data:`SCORES`); a task of its own on a Dask worker.
+    ``engagement`` N > 1: the case is run N times engaging the same controller
+    (:func:`~targetlock.experiments.target_lock.run_engagements`, the lock engaged again on the same
+    scope) and the N-th run is scored."""
+    s = run_target_lock(cfg) if engagement == 1 else run_engagements(cfg, engagement)[-1]
     seen = s.get("vision", {})
     return {**score(s["_data"], cfg.twin.camera.width, cfg.twin.camera.height, cfg.loop.metrics_after),
             "lost_fraction": float(s["lost_fraction"]),
@@ -276,6 +293,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
                 if cases_folder is not None:   # kept: a row of the results can be run again
                     save_toml(case_config(case, "pi", path.resolve(), seconds, s, vision), path.with_suffix(".toml"))
                 jobs += [(s, case, c, case_config(case, c, path, seconds, s, vision)) for c in controllers]
+        engagement = {c: split_name(c)[2] for c in controllers}
         scores: list[dict] = [{} for _ in jobs]     # filled in as the runs finish (any order on Dask)
 
         def done(k: int, sc: dict) -> None:
@@ -293,7 +311,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
             from .sweep import dask_client
             client, cluster = dask_client(None, workers)
             try:
-                futures = {client.submit(score_run, j[3], pure=False): k for k, j in enumerate(jobs)}
+                futures = {client.submit(score_run, j[3], engagement[j[2]], pure=False): k for k, j in enumerate(jobs)}
                 for fut in as_completed(futures):
                     done(futures[fut], fut.result())
             finally:
@@ -302,7 +320,7 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
                     cluster.close()
         else:
             for k, j in enumerate(jobs):
-                done(k, score_run(j[3]))
+                done(k, score_run(j[3], engagement[j[2]]))
         for k, (s, case, c, _) in enumerate(jobs):
             per[c].append(scores[k])
             if progress and c == controllers[-1]:
@@ -407,16 +425,19 @@ def format_table(summary: dict) -> list[str]:
 
 
 def parse_controllers(names: str) -> tuple[str, ...]:
-    """A comma-separated list of benchmark controller names (``kind`` or ``kind+source``), checked."""
+    """A comma-separated list of benchmark controller names (``kind``, ``kind+source``, either with
+    ``@N``: its N-th engagement on the case, 2-10), checked."""
     from ..config import ConfigError
     out = tuple(n.strip() for n in names.split(",") if n.strip())
     if not out:
         raise ConfigError("--controllers is empty; give e.g. pi,adaptive,adaptive+oracle")
     for name in out:
-        kind, plus, source = name.partition("+")
-        if kind not in CONTROLLERS or (plus and source not in KNOWLEDGE_SOURCES):
+        kind, source, n = split_name(name)
+        if kind not in CONTROLLERS or ("+" in name and source not in KNOWLEDGE_SOURCES) or \
+                not (1 <= n <= 10) or ("@" in name and n == 1):
             raise ConfigError(f"--controllers: {name!r}; allowed: a controller {', '.join(CONTROLLERS)}, optionally "
-                              f"+ a knowledge source {', '.join(s for s in KNOWLEDGE_SOURCES if s != 'nominal')}")
+                              f"+ a knowledge source {', '.join(s for s in KNOWLEDGE_SOURCES if s != 'nominal')}, "
+                              f"optionally @N for its N-th engagement on the case (N 2-10, e.g. adaptive@2)")
     return out
 
 
@@ -425,7 +446,7 @@ class RobustnessSpec:
     """What ``targetlock bench robustness`` ran (the run folder's ``config.toml``)."""
     cases: int = param(60, lo=1, hi=10000, doc="random cases per set")
     seeds: tuple[int, ...] = param((0,), doc="seeds of the random sets (each its own set of cases)")
-    controllers: tuple[str, ...] = param(BENCH_CONTROLLERS, doc="controllers, kind[+knowledge source]; pi always runs")
+    controllers: tuple[str, ...] = param(BENCH_CONTROLLERS, doc="controllers, kind[+knowledge source][@engagement]; pi always runs")
     seconds: float = param(12.0, unit="s", lo=1.0, hi=3600.0, doc="length of each run")
     workers: int = param(0, lo=0, hi=512, doc="local Dask worker processes (0: in this process)")
     vision: bool = param(False, doc="rendered frames and the feature tracker instead of the ideal projection")

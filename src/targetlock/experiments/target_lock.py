@@ -31,7 +31,7 @@ from ..rig.simulated import ObservationNoise, SimulatedRig
 from ..vision.tracker import TrackerSettings
 from .runfolder import RunFolder
 
-__all__ = ["RunConfig", "build_rig", "run_target_lock", "plot_run", "COLUMNS"]
+__all__ = ["RunConfig", "build_rig", "run_target_lock", "run_engagements", "plot_run", "COLUMNS"]
 
 log = logging.getLogger(__name__)
 
@@ -204,8 +204,14 @@ class RunRecorder:
 
 
 def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: bool = False,
-                    frame_hook=None, rig=None, video=None, keep_rows: bool | None = None) -> dict:
+                    frame_hook=None, rig=None, video=None, keep_rows: bool | None = None,
+                    controller: Controller | None = None) -> dict:
     """Run the closed loop as configured; returns the summary (and fills ``run`` if given).
+
+    ``controller``: the controller to engage instead of building one from ``cfg`` (it must have been
+    built for the same rig's limits, e.g. by :func:`build_controller`). The loop resets it when it starts,
+    as an engagement after a release: what it keeps across engagements (``adaptive``: the candidate scope
+    and the video delay it found) it keeps here (:func:`run_engagements`).
 
     ``rig``: a rig to run on instead of the in-process twin (e.g. a :class:`HardwareRig`); it then
     runs on the wall clock. ``keep_rows`` (default: without a run folder) returns every row as
@@ -217,11 +223,22 @@ def run_target_lock(cfg: RunConfig, run: RunFolder | None = None, *, progress: b
     ``"stopped"`` naming the signal, before :class:`~targetlock.loop.signals.StopSignal` is re-raised."""
     with stop_on_signals():
         return _run_target_lock(cfg, run, progress=progress, frame_hook=frame_hook, rig=rig, video=video,
-                                keep_rows=run is None if keep_rows is None else keep_rows)
+                                keep_rows=run is None if keep_rows is None else keep_rows, controller=controller)
+
+
+def run_engagements(cfg: RunConfig, n: int) -> list[dict]:
+    """``n`` runs of ``cfg`` (each on a fresh twin: the same scope, latency, target path and seed) engaging
+    one and the same controller, as the lock is engaged again and again in a procedure on one scope
+    (the console's engage after a release). Returns the summaries, first engagement first; rows are kept
+    (``summary["_data"]``). The first run is exactly ``run_target_lock(cfg)``'s."""
+    if not 1 <= n <= 10:
+        raise ValueError(f"run_engagements: n = {n}; allowed: 1 to 10")
+    ctrl = build_controller(cfg, build_rig(cfg))
+    return [run_target_lock(cfg, controller=ctrl) for _ in range(n)]
 
 
 def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, frame_hook, rig, video,
-                     keep_rows: bool) -> dict:
+                     keep_rows: bool, controller: Controller | None) -> dict:
     hardware = rig is not None
     vision = None
     if cfg.vision and frame_hook is None and not hardware:
@@ -231,7 +248,7 @@ def _run_target_lock(cfg: RunConfig, run: RunFolder | None, *, progress: bool, f
         vision = frame_hook = VisionPipeline(cfg.twin, tracker=cfg.vision_tracker, seed=cfg.seed, video=video,
                                              regions=True, tracker_settings=cfg.feature_tracker)
     rig = rig if hardware else build_rig(cfg, frame_hook)
-    ctrl = build_controller(cfg, rig)
+    ctrl = build_controller(cfg, rig) if controller is None else controller
     realtime = cfg.realtime or hardware
     gate = ObservationGate.for_camera(cfg.loop.gate, rig.camera)
     loop = ControlLoop(rig, ctrl, rate=cfg.loop.rate, clock=WallClock() if realtime else SimClock(), gate=gate,
