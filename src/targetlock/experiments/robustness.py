@@ -189,8 +189,8 @@ def write_waypoints(case: Case, path: Path) -> None:
 
 
 def split_name(controller: str) -> tuple[str, str, int]:
-    """A benchmark controller name ``kind[+source][@N]`` as (kind, knowledge source or "", engagement N,
-    1 when not given)."""
+    """A benchmark controller name ``kind[+source][@N]`` as (kind, knowledge source or "", engagement N:
+    1 without ``@``, 0 when what follows ``@`` is not a whole number; :func:`parse_controllers` checks it)."""
     name, at, n = controller.partition("@")
     kind, _, source = name.partition("+")
     return kind, source, int(n) if at and n.isdigit() else (1 if not at else 0)
