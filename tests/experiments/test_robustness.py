@@ -92,7 +92,8 @@ def test_engaged_again_on_the_same_scope_the_lock_starts_from_what_it_found(tmp_
     first, second = run_engagements(cfg, 2)
     alone = run_target_lock(cfg)
     assert np.array_equal(first["_data"], alone["_data"], equal_nan=True)     # the first is the plain run
-    rms = [score(s["_data"], 720, 576, 1.0)["rms_px"] for s in (first, second)]
+    cam = cfg.twin.camera
+    rms = [score(s["_data"], cam.width, cam.height, cfg.loop.metrics_after)["rms_px"] for s in (first, second)]
     assert rms[1] < 0.8 * rms[0]
     assert score_run(cfg, 2)["rms_px"] == rms[1]
 

@@ -193,7 +193,9 @@ def split_name(controller: str) -> tuple[str, str, int]:
     1 without ``@``, 0 when what follows ``@`` is not a whole number; :func:`parse_controllers` checks it)."""
     name, at, n = controller.partition("@")
     kind, _, source = name.partition("+")
-    return kind, source, int(n) if at and n.isdigit() else (1 if not at else 0)
+    if not at:
+        return kind, source, 1
+    return kind, source, int(n) if n.isdigit() else 0
 
 
 def case_config(case: Case, controller: str, waypoints_file: Path, seconds: float, seed: int,
@@ -433,8 +435,8 @@ def parse_controllers(names: str) -> tuple[str, ...]:
         raise ConfigError("--controllers is empty; give e.g. pi,adaptive,adaptive+oracle")
     for name in out:
         kind, source, n = split_name(name)
-        if kind not in CONTROLLERS or ("+" in name and source not in KNOWLEDGE_SOURCES) or \
-                not (1 <= n <= 10) or ("@" in name and n == 1):
+        engagement_ok = 2 <= n <= 10 if "@" in name else True
+        if kind not in CONTROLLERS or ("+" in name and source not in KNOWLEDGE_SOURCES) or not engagement_ok:
             raise ConfigError(f"--controllers: {name!r}; allowed: a controller {', '.join(CONTROLLERS)}, optionally "
                               f"+ a knowledge source {', '.join(s for s in KNOWLEDGE_SOURCES if s != 'nominal')}, "
                               f"optionally @N for its N-th engagement on the case (N 2-10, e.g. adaptive@2)")
