@@ -209,3 +209,39 @@ def test_a_selection_warns_when_the_target_may_be_hard_to_follow():
     assert tr.select(_gray_bgr(dots), p, 80) and "only" in tr.warning and "trackable corners" in tr.warning
     assert tr.select(_gray_bgr(texture), p, 80) and tr.warning is None and tr.failure is None
     assert not tr.fresh().select(_gray_bgr(np.full((h, w), 120.0)), p, 80)
+
+
+def test_corners_found_in_a_window_are_those_of_the_whole_region(renderer, sel_pose):
+    """Corners are detected on the search window and a small margin only (speed): they must be exactly
+    those that detection over the whole region finds inside the window, at the window's centre, at
+    the region's border and across the edge of the round view, with glints masked."""
+    import cv2
+    s = TrackerSettings()
+    frames = _translation(renderer, sel_pose, n=2)
+    tr = FeatureTracker(s)
+    assert tr.select(frames[0].image, frames[0].truth_px, WINDOW)
+    view = tr._crop(frames[1].image, frames[1].truth_px)
+    off = view.to_frame[:2, 2]
+    h, w = view.gray.shape
+    edge = tr._crop(frames[1].image, np.array([360.0, 288.0]) + 270.0 * np.array([0.8, 0.6]))  # the view's rim
+    cases = [(view, frames[1].truth_px, 40.0), (view, off + (12.0, 12.0), 40.0), (view, off + (w - 5.0, 30.0), 25.0),
+             (edge, edge.to_frame[:2, 2] + 0.5 * edge.gray.shape[0], 40.0)]
+    assert np.count_nonzero(edge.fov == 0) > 0.1 * edge.fov.size  # the rim case does reach outside the view
+    checked = masked = 0
+    for v, centre, half in cases:
+        o = v.to_frame[:2, 2]
+        c = np.asarray(centre, float) - o
+        x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
+        x1, y1 = int(min(v.gray.shape[1], c[0] + half + 1)), int(min(v.gray.shape[0], c[1] + half + 1))
+        for quality in (None, 0.1 * s.feature_quality):
+            mask = np.zeros(v.gray.shape, np.uint8)
+            mask[y0:y1, x0:x1] = v.fov[y0:y1, x0:x1]
+            masked += int(np.count_nonzero(mask[tr._avoided(v)]))
+            mask[tr._avoided(v)] = 0
+            ref = cv2.goodFeaturesToTrack(v.gray, s.max_features, quality or s.feature_quality,
+                                          s.min_feature_distance_px, mask=mask, blockSize=5)
+            got = tr._features(v, np.asarray(centre, float), half, quality)
+            assert ref is not None and len(got) == len(ref)
+            np.testing.assert_array_equal(got, ref.reshape(-1, 2) + o.astype(np.float32))
+            checked += len(got)
+    assert checked > 100 and masked > 0  # many corners compared, and glints were left out of some windows
