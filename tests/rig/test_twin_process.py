@@ -113,4 +113,7 @@ def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_pat
     a, b = hw["curves"][0], twin["curves"][0]
     assert a["hysteresis_width_deg"] == pytest.approx(b["hysteresis_width_deg"], abs=2.0)
     assert a["total_gain"] == pytest.approx(b["total_gain"], abs=0.03)
-    assert a["reversal_width_deg"] == pytest.approx(b["reversal_width_deg"], abs=2.0)
+    # A reversal's stall ends at a sample: on the rig the samples are taken on the wall clock, and one
+    # taken late on a loaded host moves that end by a sample, 60 deg/s / 50 Hz = 1.2 deg (seen in CI:
+    # 15.08 against 17.08 deg; 16.3-16.4 in quiet runs). Within two samples.
+    assert a["reversal_width_deg"] == pytest.approx(b["reversal_width_deg"], abs=2 * 60.0 / 50.0)
