@@ -103,7 +103,8 @@ def test_run_against_the_twin_in_another_process_matches_the_in_process_twin(tmp
 
 def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_path, capsys):
     rig = rig_file(tmp_path / "rig.toml")
-    sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", "60", "--sample-rate", "50", "--json"]
+    speed, rate = 60.0, 50.0  # deg/s of the handle, samples per second
+    sweep = ["--held", "0", "--amplitudes", "40", "80", "--speed", str(speed), "--sample-rate", str(rate), "--json"]
     with sim_rig("--rig", str(rig), "--duration", "60"):
         assert main(["hysteresis", "--rig", str(rig), "--out", str(tmp_path / "hw"), *sweep]) == 0
     hw = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -114,6 +115,6 @@ def test_hysteresis_sweep_through_the_drives_and_natnet_matches_the_twin(tmp_pat
     assert a["hysteresis_width_deg"] == pytest.approx(b["hysteresis_width_deg"], abs=2.0)
     assert a["total_gain"] == pytest.approx(b["total_gain"], abs=0.03)
     # A reversal's stall ends at a sample: on the rig the samples are taken on the wall clock, and one
-    # taken late on a loaded host moves that end by a sample, 60 deg/s / 50 Hz = 1.2 deg (seen in CI:
-    # 15.08 against 17.08 deg; 16.3-16.4 in quiet runs). Within two samples.
-    assert a["reversal_width_deg"] == pytest.approx(b["reversal_width_deg"], abs=2 * 60.0 / 50.0)
+    # taken late on a loaded host moves that end by a sample, speed / rate = 1.2 deg (seen in CI: 15.08
+    # against 17.08 deg; 16.3-16.4 in quiet runs). Within two samples.
+    assert a["reversal_width_deg"] == pytest.approx(b["reversal_width_deg"], abs=2 * speed / rate)

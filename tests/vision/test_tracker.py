@@ -222,7 +222,7 @@ def test_corners_found_in_a_window_are_those_of_the_whole_region(renderer, sel_p
     assert tr.select(frames[0].image, frames[0].truth_px, WINDOW)
     view = tr._crop(frames[1].image, frames[1].truth_px)
     off = view.to_frame[:2, 2]
-    h, w = view.gray.shape
+    w = view.gray.shape[1]
     edge = tr._crop(frames[1].image, np.array([360.0, 288.0]) + 270.0 * np.array([0.8, 0.6]))  # the view's rim
     cases = [(view, frames[1].truth_px, 40.0), (view, off + (12.0, 12.0), 40.0), (view, off + (w - 5.0, 30.0), 25.0),
              (edge, edge.to_frame[:2, 2] + 0.5 * edge.gray.shape[0], 40.0)]

@@ -435,8 +435,8 @@ def parse_controllers(names: str) -> tuple[str, ...]:
         raise ConfigError("--controllers is empty; give e.g. pi,adaptive,adaptive+oracle")
     for name in out:
         kind, source, n = split_name(name)
-        engagement_ok = 2 <= n <= 10 if "@" in name else True
-        if kind not in CONTROLLERS or ("+" in name and source not in KNOWLEDGE_SOURCES) or not engagement_ok:
+        if kind not in CONTROLLERS or ("+" in name and source not in KNOWLEDGE_SOURCES) or \
+                ("@" in name and not 2 <= n <= 10):
             raise ConfigError(f"--controllers: {name!r}; allowed: a controller {', '.join(CONTROLLERS)}, optionally "
                               f"+ a knowledge source {', '.join(s for s in KNOWLEDGE_SOURCES if s != 'nominal')}, "
                               f"optionally @N for its N-th engagement on the case (N 2-10, e.g. adaptive@2)")

@@ -823,10 +823,12 @@ class FeatureTracker(Tracker):
         moving glints then add no edges that would pull the optical flow."""
         x, y, bw, bh = cv2.boundingRect(sat.view(np.uint8))
         tissue = fov
-        if bw > 0:
+        if bw > 0:  # the statistics over tissue only, unless highlights cover all of it
             tissue = fov.copy()
             tissue[sat] = 0
-        mean, std = cv2.meanStdDev(raw, mask=tissue if tissue is fov or tissue.any() else fov)
+            if not tissue.any():
+                tissue = fov
+        mean, std = cv2.meanStdDev(raw, mask=tissue)
         std = max(float(std[0, 0]), 2.0)
         alpha = 40.0 / std
         norm = cv2.convertScaleAbs(raw, alpha=alpha, beta=128.0 - alpha * float(mean[0, 0]))
