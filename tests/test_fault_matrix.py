@@ -46,7 +46,7 @@ def fail(argv: list[str], capsys, code: int) -> str:
     (["compare", "--latencies", "-1"], ["twin.camera.latency = -1.0", "[0.0, 5.0] s"]),
     (["latency", "--inject-frame", "100000"], ["inject_frame = 100000", "[1, 1000]"]),
     (["sim-rig", "--duration", "-1"], ["duration = -1.0", "allowed"]),
-    (["vision-eval", "--seed", "-1"], ["seed = -1", "[0, 4294967295]"]),
+    (["vision-eval", "--seed", "-1"], ["seed[0] = -1", "[0, 4294967295]"]),
     (["run", "--tracker", "marker"], ["--tracker marker needs vision"]),
     (["run", "--seconds", "1"], ["loop.metrics_after = 2 s", "loop.seconds = 1 s"]),
     (["run", "--set", "twin.camera.cx=5000"], ["twin.camera.cx = 5000", "outside the image"]),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import csv
 import errno
 import logging
 import os
@@ -349,7 +350,13 @@ def _sim_rig(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class VisionEvalOptions:
     """Options of ``targetlock vision-eval`` beside its settings."""
-    seed: int = param(0, lo=0, hi=2**32 - 1, doc="random seed of the rendered sequences")
+    seed: tuple[int, ...] = param((0,), lo=0, hi=2**32 - 1,
+                                  doc="random seed of the rendered sequences; several: each seed's sequences, every "
+                                      "figure pooled over them")
+
+    def check(self, prefix: str = "") -> None:
+        if len(set(self.seed)) != len(self.seed):
+            raise ConfigError(f"{prefix}seed = {list(self.seed)}: a seed is named twice (its frames would count twice)")
 
 
 def _vision_eval_options(p: argparse.ArgumentParser) -> None:
@@ -368,7 +375,7 @@ def _vision_eval(args: argparse.Namespace) -> int:
     from .config import from_dict
     from .experiments.common import print_json_last
     from .experiments.runfolder import RunFolder
-    from .vision.evaluate import EvalSettings, evaluate
+    from .vision.evaluate import FRAME_COLUMNS, EvalSettings, evaluate
 
     opts = option_values(VisionEvalOptions, args, "vision-eval options")
     try:
@@ -376,23 +383,34 @@ def _vision_eval(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise ConfigError(errors=exc.errors, where="vision-eval options") from None
     contents = 1 + (len(settings.photos) if settings.tracker != "marker" else 0)   # mucosa + each photograph
-    with RunFolder("vision-eval", settings, args.out, overwrite=args.overwrite) as run:
-        with _progress(contents * len(settings.sequences), "sequence") as bar:
+    seed = opts.seed[0] if len(opts.seed) == 1 else list(opts.seed)
+    with RunFolder("vision-eval", settings, args.out, overwrite=args.overwrite) as run, \
+            run.file("frames.csv").open("w", newline="") as fh:
+        table = csv.writer(fh)
+        table.writerow(FRAME_COLUMNS)
+
+        def on_frames(rows: list[tuple]) -> None:   # as each sequence is scored: kept if the run is stopped
+            table.writerows(rows)
+            fh.flush()
+        with _progress(len(opts.seed) * contents * len(settings.sequences), "sequence") as bar:
             def progress(line: str) -> None:
                 log.info("%s", line)
                 bar.update(1)
-            res = evaluate(settings, seed=opts.seed, progress=progress)
+            res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames)
         o = res["overall"]
         summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
                    "tracked_in_view_fraction": o["tracked_in_view_fraction"],
                    "tracked_in_view_unwarned": o["tracked_in_view_unwarned"],
                    "delta_avg": o["delta_avg"], "fps": o["fps"], "render_ms": o["render_ms"],
-                   "tracker": settings.tracker, "seed": opts.seed, "sequences": res["sequences"],
+                   "false_lock_fraction": o["false_lock_fraction"],
+                   "tracker": settings.tracker, "seed": seed, "sequences": res["sequences"],
                    "content": res["content"], "references": res["references"],
                    "selection_failures": o["selection_failures"], "selection_warnings": o["selection_warnings"],
                    "run_folder": str(run.path)}
         run.write_summary(summary)
-    print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames): "
+    seeds = f"seed {seed}" if len(opts.seed) == 1 else f"{len(opts.seed)} seeds"
+    print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames, "
+          f"{seeds}): "
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
     for c, m in res["content"].items():
@@ -405,7 +423,7 @@ def _vision_eval(args: argparse.Namespace) -> int:
         print(f"  reference {who}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
               f"delta_avg {m['delta_avg']:.3f}, false locks {m['false_lock_fraction']:.3f}, "
               f"{m['fps']:.0f} fps (ours {m['speed_ratio']:.1f}x)")
-    print(f"run folder: {run.path}")
+    print(f"run folder: {run.path} (frames.csv: every scored frame)")
     if args.json:
         print_json_last(summary)
     return 0

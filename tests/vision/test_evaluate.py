@@ -1,5 +1,6 @@
 """Evaluation: scoring rules and a short end-to-end run."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -131,3 +132,73 @@ def test_the_trackers_settings_are_part_of_the_evaluation(tmp_path, capsys):
     assert main([*argv, "--set", "feature.context_isotropy=2", "--out", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
     assert "feature.context_isotropy" in err and "[0.0, 1.0]" in err
+
+
+def test_several_seeds_are_pooled_and_every_scored_frame_is_reported():
+    """`seed=[0, 1]` runs each seed's sequences in turn and pools every figure over them: the pooled
+    figures are those of the two single-seed runs' frames together, and the per-frame rows
+    (``on_frames``) carry the same scoring."""
+    from targetlock.vision.evaluate import FRAME_COLUMNS
+    cfg = EvalSettings(frames=12, sequences=("slow", "occlusion"), photos=(), references=("lk",))
+    rows: list[tuple] = []
+    both = evaluate(cfg, seed=[0, 1], on_frames=rows.extend)
+    one = [evaluate(cfg, seed=s) for s in (0, 1)]
+    assert both["seed"] == [0, 1] and set(both["sequences"]) == {"0:slow", "0:occlusion", "1:slow", "1:occlusion"}
+    for s, single in zip((0, 1), one):
+        for name, m in single["sequences"].items():
+            assert both["sequences"][f"{s}:{name}"]["tracked_fraction"] == m["tracked_fraction"]
+    o = both["overall"]
+    assert o["frames"] == sum(r["overall"]["frames"] for r in one) == 2 * 2 * 11
+    assert o["tracked_fraction"] == pytest.approx(np.mean([r["overall"]["tracked_fraction"] for r in one]))
+    assert both["references"]["lk"]["overall"]["frames"] == o["frames"]
+    # rows: every scored frame of every sequence, seed and tracker (ours and the reference)
+    assert len(rows) == 2 * 2 * 2 * 11 and all(len(r) == len(FRAME_COLUMNS) for r in rows)
+    col = {c: i for i, c in enumerate(FRAME_COLUMNS)}
+    ours = [r for r in rows if r[col["tracker"]] == "feature"]
+    assert {r[col["seed"]] for r in ours} == {0, 1} and len(ours) == o["frames"]
+    assert np.mean([r[col["correct"]] for r in ours]) == pytest.approx(o["tracked_fraction"])
+    err = [r[col["error_px"]] for r in ours if r[col["valid"]] and r[col["visible"]]]
+    assert np.median(err) == pytest.approx(o["median_px"], abs=1e-3)
+    hidden = [r for r in ours if not r[col["visible"]]]
+    assert hidden and all(r[col["occluded"]] for r in hidden)     # the instrument covers the target
+    assert all(np.isnan(r[col["x_px"]]) and np.isnan(r[col["error_px"]]) for r in ours if not r[col["valid"]])
+    with pytest.raises(ValueError, match="distinct"):
+        evaluate(cfg, seed=[1, 1])
+
+
+def test_an_evaluation_keeps_only_the_frames_of_the_sequence_it_runs():
+    """Pooled scoring keeps each frame's ground truth, not its image: three sequences need about the
+    memory of one (``--frames`` in the thousands must not exhaust a lab PC's memory)."""
+    import tracemalloc
+    cfg = EvalSettings(frames=30, photos=(), references=())
+
+    def peak(sequences: tuple[str, ...]) -> int:
+        tracemalloc.start()
+        try:
+            evaluate(replace(cfg, sequences=sequences), seed=0)
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    frames_bytes = 30 * 576 * 720 * 3      # one sequence's images
+    one, three = peak(("slow",)), peak(("slow", "tip", "rotation"))
+    assert three - one < 0.5 * frames_bytes, (one, three)
+
+
+def test_vision_eval_writes_every_scored_frame_and_pools_seeds(tmp_path, capsys):
+    """`vision-eval --seed 0 2`: one pooled summary over both seeds, and `frames.csv` in the run folder
+    with a row per scored frame and tracker (what a researcher reads to find where a tracker fails)."""
+    import csv
+
+    from targetlock.cli import main
+    from targetlock.vision.evaluate import FRAME_COLUMNS
+    out = tmp_path / "e"
+    assert main(["vision-eval", "--sequences", "slow", "--frames", "12", "--seed", "0", "2", "--set", "photos=[]",
+                 "--set", 'references=["lk"]', "--out", str(out), "--json", "-q"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["seed"] == [0, 2] and set(s["sequences"]) == {"0:slow", "2:slow"}
+    with (out / "frames.csv").open(newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert list(table[0]) == list(FRAME_COLUMNS) and len(table) == 2 * 2 * 11
+    ours = [r for r in table if r["tracker"] == "feature"]
+    assert np.mean([int(r["correct"]) for r in ours]) == pytest.approx(s["tracked_fraction"])
+    assert {r["seed"] for r in ours} == {"0", "2"}

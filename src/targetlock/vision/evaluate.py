@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -64,7 +64,8 @@ from .reference import make_reference, reference_trackers
 from .texture import PHOTOS, photo_texture
 from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings
 
-__all__ = ["EvalSettings", "SEQUENCES", "evaluate", "render_sequence", "score", "instrument_polygon", "markdown_tables"]
+__all__ = ["EvalSettings", "SEQUENCES", "FRAME_COLUMNS", "evaluate", "frame_rows", "render_sequence", "score",
+           "instrument_polygon", "markdown_tables"]
 
 SEQUENCES = ("slow", "fast", "tip", "blur", "specular", "lighting", "noise", "occlusion", "leave", "scale",
              "rotation", "folds")
@@ -223,8 +224,8 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
 
 
 # --------------------------------------------------------------------------------- scoring
-def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict:
-    """Metrics (see module docstring) of tracker ``results`` (TrackResult per frame) against ``frames``."""
+def _per_frame(frames: list[Frame], results: list, threshold_px: float) -> tuple[np.ndarray, ...]:
+    """(error px, inf where invalid; valid; visible; correct) per frame, by the rules of the module docstring."""
     n = len(frames)
     err = np.full(n, np.inf)
     valid = np.zeros(n, bool)
@@ -235,6 +236,14 @@ def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict
             err[i] = float(np.hypot(*(np.asarray(r.position_px) - f.truth_px)))
     close = err <= threshold_px
     correct = np.where(vis, valid & close, ~valid | close)
+    return err, valid, vis, correct
+
+
+def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict:
+    """Metrics (see module docstring) of tracker ``results`` (TrackResult per frame) against ``frames``."""
+    n = len(frames)
+    err, valid, vis, correct = _per_frame(frames, results, threshold_px)
+    close = err <= threshold_px
     ev = err[vis & valid]
     delta = [float(np.mean(err[vis] < t)) if vis.any() else float("nan") for t in THRESHOLDS_PX]
     return {
@@ -248,6 +257,39 @@ def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict
         "delta_avg": float(np.mean(delta)),
         "false_lock_fraction": float(np.mean(valid & ~close)) if n else float("nan"),
     }
+
+
+FRAME_COLUMNS = ("seed", "content", "sequence", "tracker", "frame", "visible", "occluded", "truth_x_px", "truth_y_px",
+                 "valid", "lost", "x_px", "y_px", "error_px", "confidence", "correct", "selection_warned")
+"""Columns of a per-frame row (:func:`evaluate`'s ``on_frames``, ``vision-eval``'s ``frames.csv``): the
+frame's ground truth (px), what the tracker reported (position px and error px, NaN where it
+reported no valid position) and whether the frame counts as correct by the scoring rules; ``sequence``
+is the sequence's name, ``tracker`` the tracker under test (``feature``, ``marker``) or a reference;
+``selection_warned``: the tracker under test's selection on this sequence failed or came with a
+warning."""
+
+
+def frame_rows(seed: int, content: str, sequence: str, tracker: str, frames: list[Frame], results: list,
+               threshold_px: float, warned: bool) -> list[tuple]:
+    """One :data:`FRAME_COLUMNS` row per scored frame (frames after the selection frame)."""
+    err, valid, vis, correct = _per_frame(frames, results, threshold_px)
+    rows = []
+    for i, (f, r) in enumerate(zip(frames, results)):
+        pos = np.asarray(r.position_px, float)
+        px = [round(float(v), 4) if valid[i] else math.nan for v in (pos[0], pos[1], err[i])]
+        rows.append((int(seed), content, sequence, tracker, i + 1, int(vis[i]), int(f.occluded),
+                     round(float(f.truth_px[0]), 4), round(float(f.truth_px[1]), 4), int(valid[i]), int(bool(r.lost)),
+                     *px, round(float(r.confidence), 4), int(correct[i]), int(warned)))
+    return rows
+
+
+_NO_IMAGE = np.zeros((0, 0, 3), np.uint8)
+
+
+def _truth_only(frames: list[Frame]) -> list[Frame]:
+    """The frames' ground truth without their images (what pooled scoring keeps: a run's memory does
+    not grow with its frames)."""
+    return [replace(f, image=_NO_IMAGE) for f in frames]
 
 
 def _make(cfg: EvalSettings, tracker_settings, cam: CameraParams) -> Tracker:
@@ -283,13 +325,17 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
     return m, results, dt, dt_lock, n_lock
 
 
-def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_settings=None,
+def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] = 0, tracker_settings=None,
              render_settings: RenderSettings | None = None, cam: CameraParams | None = None,
-             progress: Callable[[str], None] | None = None) -> dict:
+             progress: Callable[[str], None] | None = None,
+             on_frames: Callable[[list[tuple]], None] | None = None) -> dict:
     """Render every sequence of ``settings`` (deterministic in ``seed``) on the procedural mucosa
     and on each real photograph of ``settings.photos``, run the tracker and the reference
     trackers on the same frames, score them.
 
+    ``seed``: one seed, or several: each seed's sequences (its own mucosa, target places and motions)
+    are run in turn and every figure is pooled over them; the per-sequence keys then start with
+    ``SEED:`` (``3:coffee/tip``).
     Returns a JSON-ready dict: ``overall`` (the tracker's metrics pooled over all scored frames,
     plus ``fps``, ``render_ms``, ``selection_failures`` and ``selection_warnings``: selections that
     succeeded with a :attr:`~targetlock.vision.tracker.Tracker.warning`, and ``tracked_in_view_unwarned``:
@@ -297,67 +343,83 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
     ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
     ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
     ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
-    like the tracker's), ``settings``, ``rules``.
+    like the tracker's), ``settings``, ``seed`` (as given: an int or a list), ``rules``.
     Trackers are timed on one OpenCV thread (``fps`` counts only ``update`` calls).
     ``tracker_settings``: the tracker's settings (a :class:`TrackerSettings` replaces
     ``settings.feature``, and the result's ``settings`` show it; a :class:`MarkerSettings` is for
     ``tracker = "marker"``).
+    ``on_frames``: called after each tracker ran on a sequence with its :data:`FRAME_COLUMNS` rows
+    (to write them as the evaluation goes).
     """
     cfg = settings or EvalSettings()
     if isinstance(tracker_settings, TrackerSettings):
         cfg = replace(cfg, feature=tracker_settings)
     cfg = validate(cfg)
+    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(x) for x in seed)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"seed = {seed!r}: one seed or a list of distinct seeds")
     cam = cam or endoscope_camera()
     rs = render_settings or RenderSettings(fresh_noise=True)
-    if cfg.tracker == "marker":
-        contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
-    else:
-        contents = [("mucosa", PlanarTarget.mucosa(seed=seed, texture_px=rs.texture_px))]
-        contents += [(ph, PlanarTarget((0.2, 0.2), photo_texture(ph), (0.0, 0.0))) for ph in cfg.photos]
-    renderer = Renderer(cam, rs, contents[0][1], seed=seed)
     threads = cv2.getNumThreads()
     per_seq: dict[str, dict] = {}
     ref_seq: dict[str, dict[str, dict]] = {who: {} for who in cfg.references}  # reference -> sequence -> metrics
-    pooled: dict[tuple[str, str], list] = {}  # (tracker, content) -> [frames, results, t, t_lock, n_lock]
+    # (tracker, content) -> [ground truth (frames without images), results, t, t_lock, n_lock, selection
+    # failures, selection warnings, unwarned sequences' ground truth, their results]
+    pooled: dict[tuple[str, str], list] = {}
     t_render = 0.0
     n_render = 0
     names = ("tracker", *cfg.references)
+    under_test = cfg.tracker
+    all_contents: list[str] = []
     try:
         cv2.setNumThreads(1)
-        for content, target in contents:
-            renderer.set_target(target)
-            for name in cfg.sequences:
-                t0 = time.perf_counter()
-                frames = render_sequence(name, cfg, seed=seed, cam=cam, render_settings=rs, target=target,
-                                         renderer=renderer)
-                t_render += time.perf_counter() - t0
-                n_render += len(frames)
-                key = name if content == "mucosa" else f"{content}/{name}"
-                warned = False  # the tracker's selection on this sequence came with a warning (or failed)
-                for who in names:
-                    tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
-                    m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
-                                                                   cfg.threshold_px)
-                    if who == "tracker":
-                        warned = m["selection_warning"] is not None or not m["selected"]
-                    acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
-                    acc[0] += frames[1:]
-                    acc[1] += results
-                    acc[2] += dt
-                    acc[3] += dt_lock
-                    acc[4] += n_lock
-                    acc[5] += not m["selected"]
-                    acc[6] += m["selection_warning"] is not None
-                    if not warned:
-                        acc[7] += frames[1:]
-                        acc[8] += results
-                    if who != "tracker":
-                        ref_seq[who][key] = m
-                    else:
-                        per_seq[key] = m
-                        if progress:
-                            progress(f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
-                                     f"fps {m['fps']:.0f}")
+        for sd in seeds:
+            if cfg.tracker == "marker":
+                contents = [("mucosa", PlanarTarget.aruco(seed=sd, texture_px=rs.texture_px))]
+            else:
+                contents = [("mucosa", PlanarTarget.mucosa(seed=sd, texture_px=rs.texture_px))]
+                contents += [(ph, PlanarTarget((0.2, 0.2), photo_texture(ph), (0.0, 0.0))) for ph in cfg.photos]
+            all_contents = [c for c, _ in contents]
+            renderer = Renderer(cam, rs, contents[0][1], seed=sd)
+            for content, target in contents:
+                renderer.set_target(target)
+                for name in cfg.sequences:
+                    t0 = time.perf_counter()
+                    frames = render_sequence(name, cfg, seed=sd, cam=cam, render_settings=rs, target=target,
+                                             renderer=renderer)
+                    t_render += time.perf_counter() - t0
+                    n_render += len(frames)
+                    key = (f"{sd}:" if len(seeds) > 1 else "") + (name if content == "mucosa" else f"{content}/{name}")
+                    truth = _truth_only(frames[1:])
+                    warned = False  # the tracker's selection on this sequence came with a warning (or failed)
+                    for who in names:
+                        tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
+                        m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
+                                                                       cfg.threshold_px)
+                        if who == "tracker":
+                            warned = m["selection_warning"] is not None or not m["selected"]
+                        if on_frames is not None:
+                            on_frames(frame_rows(sd, content, name, under_test if who == "tracker" else who,
+                                                 frames[1:], results, cfg.threshold_px, warned))
+                        acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
+                        acc[0] += truth
+                        acc[1] += results
+                        acc[2] += dt
+                        acc[3] += dt_lock
+                        acc[4] += n_lock
+                        acc[5] += not m["selected"]
+                        acc[6] += m["selection_warning"] is not None
+                        if not warned:
+                            acc[7] += truth
+                            acc[8] += results
+                        if who != "tracker":
+                            ref_seq[who][key] = m
+                        else:
+                            per_seq[key] = m
+                            if progress:
+                                progress(f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
+                                         f"fps {m['fps']:.0f}")
+                    del frames
     finally:
         cv2.setNumThreads(threads)
 
@@ -377,7 +439,6 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
         m["tracked_in_view_unwarned"] = clear["tracked_in_view_fraction"]
         return m
 
-    all_contents = [c for c, _ in contents]
     overall = pool("tracker", all_contents)
     overall["render_ms"] = 1e3 * t_render / max(n_render, 1)
     refs = {}
@@ -390,7 +451,7 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int = 0, tracker_set
         cfg_d[k] = list(getattr(cfg, k))
     return {"overall": overall, "sequences": per_seq, "content": {c: pool("tracker", [c]) for c in all_contents},
             "references": refs, "photo_licences": {c: PHOTOS[c] for c in all_contents if c in PHOTOS},
-            "settings": cfg_d, "seed": int(seed),
+            "settings": cfg_d, "seed": seeds[0] if isinstance(seed, (int, np.integer)) else list(seeds),
             "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
                      "the field of view): correct if not valid, or valid and error <= threshold"}
 
@@ -434,6 +495,8 @@ def markdown_tables(result: dict) -> str:
                    + " | ".join(f"{o:.3f}" for o in others)
                    + f" | {fmt(m['fps'], '.0f')} | {fmt(m['fps_lost'], '.0f')} |")
     seq.append("")
+    sd = result["seed"]
+    seeds = f"seed {sd}" if isinstance(sd, int) else "seeds " + ", ".join(map(str, sd))
     seq.append(f"delta_avg at least as high as every reference's on {ahead} of {len(result['sequences'])} sequences "
-               f"(seed {result['seed']}).")
+               f"({seeds}).")
     return "\n".join(out + seq) + "\n"
