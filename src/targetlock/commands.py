@@ -353,6 +353,8 @@ class VisionEvalOptions:
     seed: tuple[int, ...] = param((0,), lo=0, hi=2**32 - 1,
                                   doc="random seed of the rendered sequences; several: each seed's sequences, every "
                                       "figure pooled over them")
+    workers: int = param(0, lo=0, hi=512, doc="several seeds: run them on a local Dask cluster of this many worker "
+                                              "processes at once (0: one after the other in this process)")
 
     def check(self, prefix: str = "") -> None:
         if len(set(self.seed)) != len(self.seed):
@@ -366,6 +368,7 @@ def _vision_eval_options(p: argparse.ArgumentParser) -> None:
                    help=f"sequences to run (default: all): {', '.join(SEQUENCES)}")
     config_flag(p, "--frames", EvalSettings, "frames")
     config_flag(p, "--seed", VisionEvalOptions, "seed", options=True)
+    config_flag(p, "--workers", VisionEvalOptions, "workers", options=True, metavar="N")
     p.add_argument("--set", action="append", metavar="FIELD=VALUE", help="set any field of the evaluation settings")
     _out_options(p)
 
@@ -396,7 +399,18 @@ def _vision_eval(args: argparse.Namespace) -> int:
             def progress(line: str) -> None:
                 log.info("%s", line)
                 bar.update(1)
-            res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames)
+            if opts.workers and len(opts.seed) > 1:
+                from .experiments.sweep import dask_client
+                client, cluster = dask_client(None, opts.workers)
+                try:
+                    res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames,
+                                   executor=client.get_executor())
+                finally:
+                    client.close()
+                    if cluster is not None:
+                        cluster.close()
+            else:
+                res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames)
         o = res["overall"]
         summary = {"median_px": o["median_px"], "p95_px": o["p95_px"], "tracked_fraction": o["tracked_fraction"],
                    "tracked_in_view_fraction": o["tracked_in_view_fraction"],

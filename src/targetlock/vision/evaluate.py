@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
+from concurrent.futures import Executor, as_completed
 from typing import Callable, Sequence
 
 import cv2
@@ -64,7 +65,7 @@ from .reference import make_reference, reference_trackers
 from .texture import PHOTOS, photo_texture
 from .tracker import FeatureTracker, MarkerSettings, MarkerTracker, Tracker, TrackerSettings
 
-__all__ = ["EvalSettings", "SEQUENCES", "FRAME_COLUMNS", "evaluate", "frame_rows", "render_sequence", "score",
+__all__ = ["EvalSettings", "SEQUENCES", "FRAME_COLUMNS", "evaluate", "render_sequence", "score",
            "instrument_polygon", "markdown_tables"]
 
 SEQUENCES = ("slow", "fast", "tip", "blur", "specular", "lighting", "noise", "occlusion", "leave", "scale",
@@ -269,8 +270,8 @@ is the sequence's name, ``tracker`` the tracker under test (``feature``, ``marke
 warning."""
 
 
-def frame_rows(seed: int, content: str, sequence: str, tracker: str, frames: list[Frame], results: list,
-               threshold_px: float, warned: bool) -> list[tuple]:
+def _frame_rows(seed: int, content: str, sequence: str, tracker: str, frames: list[Frame], results: list,
+                threshold_px: float, warned: bool) -> list[tuple]:
     """One :data:`FRAME_COLUMNS` row per scored frame (frames after the selection frame)."""
     err, valid, vis, correct = _per_frame(frames, results, threshold_px)
     rows = []
@@ -325,10 +326,92 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
     return m, results, dt, dt_lock, n_lock
 
 
+@dataclass
+class _SeedRun:
+    """What one seed's sequences gave (:func:`_run_seed`): merged by :func:`evaluate`."""
+    sequences: dict[str, dict]                 # key -> the tracker's metrics
+    references: dict[str, dict[str, dict]]     # reference -> key -> metrics
+    # (tracker, content) -> [ground truth (frames without images), results, t, t_lock, n_lock, selection
+    # failures, selection warnings, unwarned sequences' ground truth, their results]
+    pooled: dict[tuple[str, str], list]
+    contents: list[str]
+    render_s: float
+    rendered: int
+    rows: list[tuple]                           # FRAME_COLUMNS rows, when collected for another process
+
+
+def _run_seed(cfg: EvalSettings, seed: int, keyed: bool, tracker_settings, cam: CameraParams, rs: RenderSettings,
+              progress: Callable[[str], None] | None = None,
+              on_frames: Callable[[list[tuple]], None] | None = None) -> _SeedRun:
+    """Render, track and score every sequence of one seed (keys prefixed ``SEED:`` if ``keyed``), on
+    one OpenCV thread; with neither ``progress`` nor ``on_frames`` (a worker process) the rows are
+    collected into the result."""
+    out = _SeedRun({}, {who: {} for who in cfg.references}, {}, [], 0.0, 0, [])
+    if on_frames is None and progress is None:
+        on_frames = out.rows.extend
+    if cfg.tracker == "marker":
+        contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
+    else:
+        contents = [("mucosa", PlanarTarget.mucosa(seed=seed, texture_px=rs.texture_px))]
+        contents += [(ph, PlanarTarget((0.2, 0.2), photo_texture(ph), (0.0, 0.0))) for ph in cfg.photos]
+    out.contents = [c for c, _ in contents]
+    names = ("tracker", *cfg.references)
+    threads = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        renderer = Renderer(cam, rs, contents[0][1], seed=seed)
+        for content, target in contents:
+            renderer.set_target(target)
+            for name in cfg.sequences:
+                t0 = time.perf_counter()
+                frames = render_sequence(name, cfg, seed=seed, cam=cam, render_settings=rs, target=target,
+                                         renderer=renderer)
+                out.render_s += time.perf_counter() - t0
+                out.rendered += len(frames)
+                key = (f"{seed}:" if keyed else "") + (name if content == "mucosa" else f"{content}/{name}")
+                truth = _truth_only(frames[1:])
+                warned = False  # the tracker's selection on this sequence came with a warning (or failed)
+                for who in names:
+                    tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
+                    m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
+                                                                   cfg.threshold_px)
+                    if who == "tracker":
+                        warned = m["selection_warning"] is not None or not m["selected"]
+                    if on_frames is not None:
+                        on_frames(_frame_rows(seed, content, name, cfg.tracker if who == "tracker" else who,
+                                              frames[1:], results, cfg.threshold_px, warned))
+                    acc = out.pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
+                    acc[0] += truth
+                    acc[1] += results
+                    acc[2] += dt
+                    acc[3] += dt_lock
+                    acc[4] += n_lock
+                    acc[5] += not m["selected"]
+                    acc[6] += m["selection_warning"] is not None
+                    if not warned:
+                        acc[7] += truth
+                        acc[8] += results
+                    if who != "tracker":
+                        out.references[who][key] = m
+                    else:
+                        out.sequences[key] = m
+                        if progress:
+                            progress(_progress_line(key, m))
+                del frames  # before the next sequence is rendered: one sequence's images at a time
+    finally:
+        cv2.setNumThreads(threads)
+    return out
+
+
+def _progress_line(key: str, m: dict) -> str:
+    return f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, fps {m['fps']:.0f}"
+
+
 def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] = 0, tracker_settings=None,
              render_settings: RenderSettings | None = None, cam: CameraParams | None = None,
              progress: Callable[[str], None] | None = None,
-             on_frames: Callable[[list[tuple]], None] | None = None) -> dict:
+             on_frames: Callable[[list[tuple]], None] | None = None,
+             executor: Executor | None = None) -> dict:
     """Render every sequence of ``settings`` (deterministic in ``seed``) on the procedural mucosa
     and on each real photograph of ``settings.photos``, run the tracker and the reference
     trackers on the same frames, score them.
@@ -350,6 +433,11 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     ``tracker = "marker"``).
     ``on_frames``: called after each tracker ran on a sequence with its :data:`FRAME_COLUMNS` rows
     (to write them as the evaluation goes).
+    ``executor`` (a :class:`concurrent.futures.Executor` of processes, e.g. a Dask client's
+    ``get_executor()``): several seeds run on it at once, each on one OpenCV thread of its worker
+    (``fps`` stays a one-core figure while the workers do not outnumber the cores); ``progress`` and
+    ``on_frames`` then hear of a seed's sequences when the whole seed is done. The figures are the
+    same as in this process.
     """
     cfg = settings or EvalSettings()
     if isinstance(tracker_settings, TrackerSettings):
@@ -360,68 +448,33 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
         raise ValueError(f"seed = {seed!r}: one seed or a list of distinct seeds")
     cam = cam or endoscope_camera()
     rs = render_settings or RenderSettings(fresh_noise=True)
-    threads = cv2.getNumThreads()
-    per_seq: dict[str, dict] = {}
-    ref_seq: dict[str, dict[str, dict]] = {who: {} for who in cfg.references}  # reference -> sequence -> metrics
-    # (tracker, content) -> [ground truth (frames without images), results, t, t_lock, n_lock, selection
-    # failures, selection warnings, unwarned sequences' ground truth, their results]
-    pooled: dict[tuple[str, str], list] = {}
-    t_render = 0.0
-    n_render = 0
-    names = ("tracker", *cfg.references)
-    under_test = cfg.tracker
-    all_contents: list[str] = []
-    try:
-        cv2.setNumThreads(1)
+    keyed = len(seeds) > 1
+    runs: dict[int, _SeedRun] = {}
+    if executor is None or not keyed:
         for sd in seeds:
-            if cfg.tracker == "marker":
-                contents = [("mucosa", PlanarTarget.aruco(seed=sd, texture_px=rs.texture_px))]
-            else:
-                contents = [("mucosa", PlanarTarget.mucosa(seed=sd, texture_px=rs.texture_px))]
-                contents += [(ph, PlanarTarget((0.2, 0.2), photo_texture(ph), (0.0, 0.0))) for ph in cfg.photos]
-            all_contents = [c for c, _ in contents]
-            renderer = Renderer(cam, rs, contents[0][1], seed=sd)
-            for content, target in contents:
-                renderer.set_target(target)
-                for name in cfg.sequences:
-                    t0 = time.perf_counter()
-                    frames = render_sequence(name, cfg, seed=sd, cam=cam, render_settings=rs, target=target,
-                                             renderer=renderer)
-                    t_render += time.perf_counter() - t0
-                    n_render += len(frames)
-                    key = (f"{sd}:" if len(seeds) > 1 else "") + (name if content == "mucosa" else f"{content}/{name}")
-                    truth = _truth_only(frames[1:])
-                    warned = False  # the tracker's selection on this sequence came with a warning (or failed)
-                    for who in names:
-                        tracker = _make(cfg, tracker_settings, cam) if who == "tracker" else make_reference(who)
-                        m, results, dt, dt_lock, n_lock = _run_tracker(tracker, frames, cam.fps, cfg.window_px,
-                                                                       cfg.threshold_px)
-                        if who == "tracker":
-                            warned = m["selection_warning"] is not None or not m["selected"]
-                        if on_frames is not None:
-                            on_frames(frame_rows(sd, content, name, under_test if who == "tracker" else who,
-                                                 frames[1:], results, cfg.threshold_px, warned))
-                        acc = pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
-                        acc[0] += truth
-                        acc[1] += results
-                        acc[2] += dt
-                        acc[3] += dt_lock
-                        acc[4] += n_lock
-                        acc[5] += not m["selected"]
-                        acc[6] += m["selection_warning"] is not None
-                        if not warned:
-                            acc[7] += truth
-                            acc[8] += results
-                        if who != "tracker":
-                            ref_seq[who][key] = m
-                        else:
-                            per_seq[key] = m
-                            if progress:
-                                progress(f"{key}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "
-                                         f"fps {m['fps']:.0f}")
-                    del frames
-    finally:
-        cv2.setNumThreads(threads)
+            runs[sd] = _run_seed(cfg, sd, keyed, tracker_settings, cam, rs, progress, on_frames)
+    else:
+        jobs = {executor.submit(_run_seed, cfg, sd, keyed, tracker_settings, cam, rs): sd for sd in seeds}
+        for fut in as_completed(jobs):
+            run = runs[jobs[fut]] = fut.result()
+            if on_frames is not None:
+                on_frames(run.rows)
+            if progress:
+                for key, m in run.sequences.items():
+                    progress(_progress_line(key, m))
+            run.rows = []
+    # merged in seed order (the result does not depend on which worker finished first)
+    per_seq = {k: m for sd in seeds for k, m in runs[sd].sequences.items()}
+    ref_seq = {who: {k: m for sd in seeds for k, m in runs[sd].references[who].items()} for who in cfg.references}
+    pooled: dict[tuple[str, str], list] = {}
+    for sd in seeds:
+        for k, acc in runs[sd].pooled.items():
+            into = pooled.setdefault(k, [[], [], 0.0, 0.0, 0, 0, 0, [], []])
+            for i, v in enumerate(acc):
+                into[i] += v
+    all_contents = runs[seeds[0]].contents
+    t_render = sum(r.render_s for r in runs.values())
+    n_render = sum(r.rendered for r in runs.values())
 
     def pool(who: str, which: list[str]) -> dict:
         accs = [pooled[(who, c)] for c in which]
