@@ -421,6 +421,8 @@ def _vision_eval(args: argparse.Namespace) -> int:
                    "content": res["content"], "references": res["references"],
                    "selection_failures": o["selection_failures"], "selection_warnings": o["selection_warnings"],
                    "run_folder": str(run.path)}
+        if "per_seed" in res:
+            summary["per_seed"] = res["per_seed"]
         run.write_summary(summary)
     seeds = f"seed {seed}" if len(opts.seed) == 1 else f"{len(opts.seed)} seeds"
     print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames, "
@@ -432,6 +434,9 @@ def _vision_eval(args: argparse.Namespace) -> int:
               f"{m['tracked_in_view_unwarned']:.3f} where the selection warned of nothing), "
               f"delta_avg {m['delta_avg']:.3f}, false locks {m['false_lock_fraction']:.3f}, "
               f"selection failures {m['selection_failures']}, selections with a warning {m['selection_warnings']}")
+    for sd, m in res.get("per_seed", {}).items():
+        print(f"  seed {sd}: tracked in view {m['tracked_in_view_fraction']:.3f}, "
+              f"false locks {m['false_lock_fraction']:.4f}, median {m['median_px']:.2f} px")
     for who, r in res["references"].items():
         m = r["overall"]
         print(f"  reference {who}: median {m['median_px']:.2f} px, tracked {m['tracked_fraction']:.3f}, "

@@ -150,6 +150,10 @@ def test_several_seeds_are_pooled_and_every_scored_frame_is_reported():
     o = both["overall"]
     assert o["frames"] == sum(r["overall"]["frames"] for r in one) == 2 * 2 * 11
     assert o["tracked_fraction"] == pytest.approx(np.mean([r["overall"]["tracked_fraction"] for r in one]))
+    for s, single in zip(("0", "1"), one):   # each seed's own figures beside the pooled ones
+        assert both["per_seed"][s]["tracked_fraction"] == single["overall"]["tracked_fraction"]
+        assert both["per_seed"][s]["median_px"] == single["overall"]["median_px"]
+    assert "per_seed" not in one[0]
     assert both["references"]["lk"]["overall"]["frames"] == o["frames"]
     # rows: every scored frame of every sequence, seed and tracker (ours and the reference)
     assert len(rows) == 2 * 2 * 2 * 11 and all(len(r) == len(FRAME_COLUMNS) for r in rows)

@@ -426,7 +426,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     ``name`` on the mucosa, ``photo/name`` on a photograph), ``content`` (pooled per texture:
     ``mucosa`` and each photo), ``references`` (per reference tracker: ``overall`` and
     ``content``, with ``speed_ratio`` = the tracker's fps / the reference's, and ``sequences``, keyed
-    like the tracker's), ``settings``, ``seed`` (as given: an int or a list), ``rules``.
+    like the tracker's), ``settings``, ``seed`` (as given: an int or a list), ``rules``; with several
+    seeds also ``per_seed`` (the tracker's metrics over each seed's frames, keyed by the seed as text).
     Trackers are timed on one OpenCV thread (``fps`` counts only ``update`` calls).
     ``tracker_settings``: the tracker's settings (a :class:`TrackerSettings` replaces
     ``settings.feature``, and the result's ``settings`` show it; a :class:`MarkerSettings` is for
@@ -476,8 +477,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     t_render = sum(r.render_s for r in runs.values())
     n_render = sum(r.rendered for r in runs.values())
 
-    def pool(who: str, which: list[str]) -> dict:
-        accs = [pooled[(who, c)] for c in which]
+    def pool(who: str, which: list[str], of: dict[tuple[str, str], list] = pooled) -> dict:
+        accs = [of[(who, c)] for c in which]
         frames = [f for a in accs for f in a[0]]
         m = score(frames, [r for a in accs for r in a[1]], cfg.threshold_px)
         t, t_lock, n_lock = sum(a[2] for a in accs), sum(a[3] for a in accs), sum(a[4] for a in accs)
@@ -502,11 +503,14 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     cfg_d = asdict(cfg)
     for k in ("sequences", "photos", "references"):
         cfg_d[k] = list(getattr(cfg, k))
-    return {"overall": overall, "sequences": per_seq, "content": {c: pool("tracker", [c]) for c in all_contents},
+    out = {"overall": overall, "sequences": per_seq, "content": {c: pool("tracker", [c]) for c in all_contents},
             "references": refs, "photo_licences": {c: PHOTOS[c] for c in all_contents if c in PHOTOS},
             "settings": cfg_d, "seed": seeds[0] if isinstance(seed, (int, np.integer)) else list(seeds),
             "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
                      "the field of view): correct if not valid, or valid and error <= threshold"}
+    if keyed:   # how much the figures vary from seed to seed
+        out["per_seed"] = {str(sd): pool("tracker", all_contents, runs[sd].pooled) for sd in seeds}
+    return out
 
 
 def markdown_tables(result: dict) -> str:
