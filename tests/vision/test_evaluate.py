@@ -227,3 +227,58 @@ def test_seeds_run_on_worker_processes_give_the_same_figures():
     assert json.dumps(untimed(away), sort_keys=True) == json.dumps(untimed(here), sort_keys=True)
     assert list(away["sequences"]) == ["2:slow", "2:leave", "0:slow", "0:leave", "1:slow", "1:leave"]
     assert sorted(map(repr, away_rows)) == sorted(map(repr, here_rows))   # repr: NaN equals NaN
+
+
+def test_a_stopped_vision_eval_keeps_the_frames_it_scored(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during the second sequence: `frames.csv` still holds every row of the first."""
+    import csv
+    import importlib
+
+    from targetlock.cli import main
+    ev = importlib.import_module("targetlock.vision.evaluate")   # the module: the package's `evaluate` is the function
+    calls = []
+    real = ev._run_tracker
+
+    def interrupted(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **kw)
+    monkeypatch.setattr(ev, "_run_tracker", interrupted)
+    out = tmp_path / "e"
+    assert main(["vision-eval", "--sequences", "slow", "rotation", "--frames", "12", "--set", "photos=[]",
+                 "--set", "references=[]", "--out", str(out), "-q"]) != 0
+    assert "interrupted" in capsys.readouterr().err
+    with (out / "frames.csv").open(newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 11 and {r["sequence"] for r in table} == {"slow"}
+
+
+def test_a_killed_vision_eval_keeps_every_sequence_it_finished(tmp_path):
+    """SIGKILL (no chance to clean up) once the first sequence is scored: `frames.csv` holds whole
+    sequences, each row complete (written and flushed as each sequence finishes)."""
+    import csv
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "e"
+    frames = 150
+    proc = subprocess.Popen([sys.executable, "-m", "targetlock", "vision-eval", "-q", "--sequences", "slow", "rotation",
+                             "scale", "--frames", str(frames), "--set", "photos=[]", "--set", "references=[]",
+                             "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = out / "frames.csv"
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None:
+            if path.exists() and path.read_text().count("\n") > 1:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    with path.open(newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert table and len(table) % (frames - 1) == 0 and len(table) < 3 * (frames - 1)
+    assert all(r["selection_warned"] in ("0", "1") for r in table)     # the last row is whole
