@@ -262,7 +262,9 @@ def _bench(args: argparse.Namespace) -> int:
         from .bench import bench_vision
         res = bench_vision()
         print(f"vision: render {res['render_ms']:.2f} ms/frame in the loop, tracker {res['tracker_fps']:.0f} fps; "
-              f"closed loop with vision {res['loop_realtime_factor']:.1f}x real time")
+              f"closed loop with vision {res['loop_realtime_factor']:.1f}x real time (median of "
+              f"{len(res['loop_realtime_factors'])} runs, {min(res['loop_realtime_factors']):.1f}-"
+              f"{max(res['loop_realtime_factors']):.1f}x)")
     if args.json:
         print_json_last(res)
     return 0
