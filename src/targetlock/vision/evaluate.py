@@ -342,12 +342,11 @@ class _SeedRun:
 
 def _run_seed(cfg: EvalSettings, seed: int, keyed: bool, tracker_settings, cam: CameraParams, rs: RenderSettings,
               progress: Callable[[str], None] | None = None,
-              on_frames: Callable[[list[tuple]], None] | None = None) -> _SeedRun:
+              on_frames: Callable[[list[tuple]], None] | None = None, collect: bool = False) -> _SeedRun:
     """Render, track and score every sequence of one seed (keys prefixed ``SEED:`` if ``keyed``), on
-    one OpenCV thread; with neither ``progress`` nor ``on_frames`` (a worker process) the rows are
-    collected into the result."""
+    one OpenCV thread; ``collect`` (in a worker process): the rows go into the result's ``rows``."""
     out = _SeedRun({}, {who: {} for who in cfg.references}, {}, [], 0.0, 0, [])
-    if on_frames is None and progress is None:
+    if collect:
         on_frames = out.rows.extend
     if cfg.tracker == "marker":
         contents = [("mucosa", PlanarTarget.aruco(seed=seed, texture_px=rs.texture_px))]
@@ -455,7 +454,9 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
         for sd in seeds:
             runs[sd] = _run_seed(cfg, sd, keyed, tracker_settings, cam, rs, progress, on_frames)
     else:
-        jobs = {executor.submit(_run_seed, cfg, sd, keyed, tracker_settings, cam, rs): sd for sd in seeds}
+        collect = on_frames is not None
+        jobs = {executor.submit(_run_seed, cfg, sd, keyed, tracker_settings, cam, rs, None, None, collect): sd
+                for sd in seeds}
         for fut in as_completed(jobs):
             run = runs[jobs[fut]] = fut.result()
             if on_frames is not None:
