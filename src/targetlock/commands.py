@@ -425,7 +425,8 @@ def _vision_eval(args: argparse.Namespace) -> int:
             summary["per_seed"] = res["per_seed"]
         run.write_summary(summary)
     seeds = f"seed {seed}" if len(opts.seed) == 1 else f"{len(opts.seed)} seeds"
-    print(f"vision-eval ({settings.tracker} tracker, {len(settings.sequences)} sequences x {settings.frames} frames, "
+    n_seq = len(settings.sequences)
+    print(f"vision-eval ({settings.tracker} tracker, {n_seq} sequence{'s' if n_seq != 1 else ''} x {settings.frames} frames, "
           f"{seeds}): "
           f"median {o['median_px']:.2f} px, p95 {o['p95_px']:.2f} px, tracked {o['tracked_fraction']:.3f}, "
           f"delta_avg {o['delta_avg']:.3f}, {o['fps']:.0f} fps (one core)")
