@@ -401,14 +401,9 @@ def _vision_eval(args: argparse.Namespace) -> int:
                 bar.update(1)
             if opts.workers and len(opts.seed) > 1:
                 from .experiments.sweep import dask_client
-                client, cluster = dask_client(None, opts.workers)
-                try:
+                with dask_client(None, opts.workers) as client:
                     res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames,
                                    executor=client.get_executor())
-                finally:
-                    client.close()
-                    if cluster is not None:
-                        cluster.close()
             else:
                 res = evaluate(settings, seed=seed, progress=progress, on_frames=on_frames)
         o = res["overall"]

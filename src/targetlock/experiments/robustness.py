@@ -311,15 +311,10 @@ def run_robustness(n_cases: int = 60, seed: int | Sequence[int] = 0, controllers
             from distributed import as_completed
 
             from .sweep import dask_client
-            client, cluster = dask_client(None, workers)
-            try:
+            with dask_client(None, workers) as client:
                 futures = {client.submit(score_run, j[3], engagement[j[2]], pure=False): k for k, j in enumerate(jobs)}
                 for fut in as_completed(futures):
                     done(futures[fut], fut.result())
-            finally:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
         else:
             for k, j in enumerate(jobs):
                 done(k, score_run(j[3], engagement[j[2]]))

@@ -25,6 +25,7 @@ appended to ``results.csv`` as they arrive (a crash keeps the finished rows).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import logging
@@ -34,7 +35,7 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -176,33 +177,41 @@ def run_case(overrides: dict) -> dict:
     return row
 
 
-def dask_client(scheduler: str | None, workers: int | None):
-    """A Dask client: to ``scheduler`` if given, else to a LocalCluster of single-threaded processes."""
+@contextlib.contextmanager
+def dask_client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
+    """A Dask client, closed (with its cluster) on leaving: to ``scheduler`` if given, else to a
+    LocalCluster of ``workers`` (default: one per core) single-threaded processes."""
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise ConfigError("sweeps run on Dask: install it with `pip install 'targetlock[sweep]'`") from None
+        raise ConfigError("--workers and sweeps run on Dask: install it with `pip install 'targetlock[sweep]'`") from None
     # Importing distributed sets its loggers to INFO (dask's logging config), and its scheduler, client and
     # nannies log in this process: ~40 lines around every run, burying the results table. Warnings only,
     # unless debug messages were asked for (-v).
     if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
         logging.getLogger("distributed").setLevel(logging.WARNING)
+    cluster = None
     if scheduler:
         try:
-            return Client(scheduler, timeout="10s"), None
+            client = Client(scheduler, timeout="10s")
         except OSError as exc:
             raise ConfigError(f"--scheduler {scheduler}: no Dask scheduler answers there ({exc})") from None
-    n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, silence_logs=logging.ERROR)
-    return Client(cluster), cluster
+    else:
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+        client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 def run_cases(cases: list[Case], *, scheduler: str | None = None, workers: int | None = None,
               on_result: Callable[[Case, dict], None] | None = None) -> list[dict]:
     """Run ``cases`` on Dask; ``on_result(case, row)`` is called as each finishes. Rows in case order."""
-    client, cluster = dask_client(scheduler, workers)
-    try:
+    with dask_client(scheduler, workers) as client:
         from distributed import as_completed
         futures = {client.submit(run_case, c.overrides, key=f"targetlock-case-{c.index}-{id(cases)}", pure=False): c
                    for c in cases}
@@ -213,10 +222,6 @@ def run_cases(cases: list[Case], *, scheduler: str | None = None, workers: int |
             if on_result is not None:
                 on_result(case, rows[case.index])
         return [rows[c.index] for c in cases]
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 class ResultsTable:

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from concurrent.futures import Executor, as_completed
 from typing import Callable, Sequence
 
@@ -226,7 +226,8 @@ def render_sequence(name: str, settings: EvalSettings | None = None, *, seed: in
 
 # --------------------------------------------------------------------------------- scoring
 def _per_frame(frames: list[Frame], results: list, threshold_px: float) -> tuple[np.ndarray, ...]:
-    """(error px, inf where invalid; valid; visible; correct) per frame, by the rules of the module docstring."""
+    """(error px, inf where invalid; valid; visible; within the threshold; correct) per frame, by the
+    rules of the module docstring."""
     n = len(frames)
     err = np.full(n, np.inf)
     valid = np.zeros(n, bool)
@@ -237,14 +238,13 @@ def _per_frame(frames: list[Frame], results: list, threshold_px: float) -> tuple
             err[i] = float(np.hypot(*(np.asarray(r.position_px) - f.truth_px)))
     close = err <= threshold_px
     correct = np.where(vis, valid & close, ~valid | close)
-    return err, valid, vis, correct
+    return err, valid, vis, close, correct
 
 
 def score(frames: list[Frame], results: list, threshold_px: float = 8.0) -> dict:
     """Metrics (see module docstring) of tracker ``results`` (TrackResult per frame) against ``frames``."""
     n = len(frames)
-    err, valid, vis, correct = _per_frame(frames, results, threshold_px)
-    close = err <= threshold_px
+    err, valid, vis, close, correct = _per_frame(frames, results, threshold_px)
     ev = err[vis & valid]
     delta = [float(np.mean(err[vis] < t)) if vis.any() else float("nan") for t in THRESHOLDS_PX]
     return {
@@ -273,7 +273,7 @@ warning."""
 def _frame_rows(seed: int, content: str, sequence: str, tracker: str, frames: list[Frame], results: list,
                 threshold_px: float, warned: bool) -> list[tuple]:
     """One :data:`FRAME_COLUMNS` row per scored frame (frames after the selection frame)."""
-    err, valid, vis, correct = _per_frame(frames, results, threshold_px)
+    err, valid, vis, _, correct = _per_frame(frames, results, threshold_px)
     rows = []
     for i, (f, r) in enumerate(zip(frames, results)):
         pos = np.asarray(r.position_px, float)
@@ -327,13 +327,49 @@ def _run_tracker(tracker: Tracker, frames: list[Frame], fps: float, window_px: i
 
 
 @dataclass
+class _Pool:
+    """One tracker's frames on one texture, pooled over sequences (and seeds): what its figures are
+    scored from."""
+    truth: list[Frame] = field(default_factory=list)       # ground truth (frames without images)
+    results: list = field(default_factory=list)
+    seconds: float = 0.0                                    # time in ``update``
+    seconds_locked: float = 0.0                             # ... on frames that arrived while locked
+    locked: int = 0                                         # frames that arrived while locked
+    failures: int = 0                                       # selection failures
+    warnings: int = 0                                       # selections with a warning
+    clear_truth: list[Frame] = field(default_factory=list)  # the sequences whose selection warned of nothing
+    clear_results: list = field(default_factory=list)
+
+    def add(self, other: "_Pool") -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+    @staticmethod
+    def score(pools: list["_Pool"], threshold_px: float) -> dict:
+        """:func:`score` of the pools' frames together, with speed and selection counts."""
+        whole = _Pool()
+        for p in pools:
+            whole.add(p)
+        m = score(whole.truth, whole.results, threshold_px)
+        t, t_lock, n = whole.seconds, whole.seconds_locked, len(whole.truth)
+        m["fps"] = n / t if t > 0 else float("inf")
+        m["fps_locked"] = whole.locked / t_lock if t_lock > 0 else float("nan")
+        n_lost = n - whole.locked
+        m["fps_lost"] = n_lost / (t - t_lock) if n_lost and t > t_lock else float("nan")
+        m["selection_failures"] = whole.failures
+        m["selection_warnings"] = whole.warnings
+        # The sequences whose selection (by the tracker evaluated, for the references too) warned of nothing.
+        m["tracked_in_view_unwarned"] = score(whole.clear_truth, whole.clear_results,
+                                              threshold_px)["tracked_in_view_fraction"]
+        return m
+
+
+@dataclass
 class _SeedRun:
     """What one seed's sequences gave (:func:`_run_seed`): merged by :func:`evaluate`."""
     sequences: dict[str, dict]                 # key -> the tracker's metrics
     references: dict[str, dict[str, dict]]     # reference -> key -> metrics
-    # (tracker, content) -> [ground truth (frames without images), results, t, t_lock, n_lock, selection
-    # failures, selection warnings, unwarned sequences' ground truth, their results]
-    pooled: dict[tuple[str, str], list]
+    pooled: dict[tuple[str, str], _Pool]        # (tracker, content) -> its frames
     contents: list[str]
     render_s: float
     rendered: int
@@ -379,17 +415,10 @@ def _run_seed(cfg: EvalSettings, seed: int, keyed: bool, tracker_settings, cam: 
                     if on_frames is not None:
                         on_frames(_frame_rows(seed, content, name, cfg.tracker if who == "tracker" else who,
                                               frames[1:], results, cfg.threshold_px, warned))
-                    acc = out.pooled.setdefault((who, content), [[], [], 0.0, 0.0, 0, 0, 0, [], []])
-                    acc[0] += truth
-                    acc[1] += results
-                    acc[2] += dt
-                    acc[3] += dt_lock
-                    acc[4] += n_lock
-                    acc[5] += not m["selected"]
-                    acc[6] += m["selection_warning"] is not None
-                    if not warned:
-                        acc[7] += truth
-                        acc[8] += results
+                    out.pooled.setdefault((who, content), _Pool()).add(_Pool(
+                        truth=truth, results=results, seconds=dt, seconds_locked=dt_lock, locked=n_lock,
+                        failures=int(not m["selected"]), warnings=int(m["selection_warning"] is not None),
+                        clear_truth=[] if warned else truth, clear_results=[] if warned else results))
                     if who != "tracker":
                         out.references[who][key] = m
                     else:
@@ -443,7 +472,8 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     if isinstance(tracker_settings, TrackerSettings):
         cfg = replace(cfg, feature=tracker_settings)
     cfg = validate(cfg)
-    seeds = (int(seed),) if isinstance(seed, (int, np.integer)) else tuple(int(x) for x in seed)
+    one_seed = isinstance(seed, (int, np.integer))
+    seeds = (int(seed),) if one_seed else tuple(int(x) for x in seed)
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"seed = {seed!r}: one seed or a list of distinct seeds")
     cam = cam or endoscope_camera()
@@ -468,31 +498,13 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     # merged in seed order (the result does not depend on which worker finished first)
     per_seq = {k: m for sd in seeds for k, m in runs[sd].sequences.items()}
     ref_seq = {who: {k: m for sd in seeds for k, m in runs[sd].references[who].items()} for who in cfg.references}
-    pooled: dict[tuple[str, str], list] = {}
-    for sd in seeds:
-        for k, acc in runs[sd].pooled.items():
-            into = pooled.setdefault(k, [[], [], 0.0, 0.0, 0, 0, 0, [], []])
-            for i, v in enumerate(acc):
-                into[i] += v
     all_contents = runs[seeds[0]].contents
     t_render = sum(r.render_s for r in runs.values())
     n_render = sum(r.rendered for r in runs.values())
 
-    def pool(who: str, which: list[str], of: dict[tuple[str, str], list] = pooled) -> dict:
-        accs = [of[(who, c)] for c in which]
-        frames = [f for a in accs for f in a[0]]
-        m = score(frames, [r for a in accs for r in a[1]], cfg.threshold_px)
-        t, t_lock, n_lock = sum(a[2] for a in accs), sum(a[3] for a in accs), sum(a[4] for a in accs)
-        m["fps"] = len(frames) / t if t > 0 else float("inf")
-        m["fps_locked"] = n_lock / t_lock if t_lock > 0 else float("nan")
-        n_lost = len(frames) - n_lock
-        m["fps_lost"] = n_lost / (t - t_lock) if n_lost and t > t_lock else float("nan")
-        m["selection_failures"] = int(sum(a[5] for a in accs))
-        m["selection_warnings"] = int(sum(a[6] for a in accs))
-        # The sequences whose selection (by the tracker evaluated, for the references too) warned of nothing.
-        clear = score([f for a in accs for f in a[7]], [r for a in accs for r in a[8]], cfg.threshold_px)
-        m["tracked_in_view_unwarned"] = clear["tracked_in_view_fraction"]
-        return m
+    def pool(who: str, which: list[str], of: tuple[int, ...] = seeds) -> dict:
+        """``who``'s figures over the textures ``which`` of the seeds ``of``."""
+        return _Pool.score([runs[sd].pooled[(who, c)] for sd in of for c in which], cfg.threshold_px)
 
     overall = pool("tracker", all_contents)
     overall["render_ms"] = 1e3 * t_render / max(n_render, 1)
@@ -505,12 +517,12 @@ def evaluate(settings: EvalSettings | None = None, *, seed: int | Sequence[int] 
     for k in ("sequences", "photos", "references"):
         cfg_d[k] = list(getattr(cfg, k))
     out = {"overall": overall, "sequences": per_seq, "content": {c: pool("tracker", [c]) for c in all_contents},
-            "references": refs, "photo_licences": {c: PHOTOS[c] for c in all_contents if c in PHOTOS},
-            "settings": cfg_d, "seed": seeds[0] if isinstance(seed, (int, np.integer)) else list(seeds),
-            "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
-                     "the field of view): correct if not valid, or valid and error <= threshold"}
+           "references": refs, "photo_licences": {c: PHOTOS[c] for c in all_contents if c in PHOTOS},
+           "settings": cfg_d, "seed": seeds[0] if one_seed else list(seeds),
+           "rules": "visible frame: correct if valid and error <= threshold; not visible (occluded/outside "
+                    "the field of view): correct if not valid, or valid and error <= threshold"}
     if keyed:   # how much the figures vary from seed to seed
-        out["per_seed"] = {str(sd): pool("tracker", all_contents, runs[sd].pooled) for sd in seeds}
+        out["per_seed"] = {str(sd): pool("tracker", all_contents, (sd,)) for sd in seeds}
     return out
 
 
